@@ -1,0 +1,28 @@
+"""Exception types.  Every error a user can cause by bad input is an
+:class:`InputError`; the CLI prints its message on one line and exits with 2."""
+
+from __future__ import annotations
+
+
+class FitmediaError(Exception):
+    """Base class of fitmedia's own errors."""
+
+
+class InputError(FitmediaError, ValueError):
+    """Bad user input: a spec field, an image file, a command-line value.
+
+    The message names the field or file, the value and what was expected.
+    """
+
+
+class SpecError(InputError):
+    """A capture spec that does not follow CAPTURE_SPEC.md."""
+
+    def __init__(self, where: str, field: str, message: str):
+        self.where = where
+        self.field = field
+        super().__init__(f"{where}: {field}: {message}" if field else f"{where}: {message}")
+
+
+class ImageError(InputError):
+    """An image file that cannot be used (missing, broken, wrong size, saturated, NaN)."""
