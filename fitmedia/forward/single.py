@@ -1,0 +1,268 @@
+"""Analytic single-scattering forward model (orders 0 and 1).
+
+For each camera ray in the water, p(s) = p0 + s v, 0 <= s <= S, the radiance
+scattered once towards the camera is
+
+    L1 = int I(d) kappa_s p_HG(cos theta) exp(-kappa_t (d + s)) / d^2 ds,
+
+with d = |p(s) - c| the distance to the light.  With the closest approach
+s0 = (c - p0).v and h = |p(s0) - c|, the equiangular substitution
+s = s0 + h tan(phi) gives ds / d^2 = dphi / h, cos(theta) = -sin(phi) and
+d + s = s0 + h tan(phi/2 + pi/4), so
+
+    L1 = (I kappa_s / h) int p_HG(-sin phi) exp(-kappa_t (s0 + h tan(phi/2 + pi/4))) dphi.
+
+Both the forward peak of the phase function and the attenuation peak sit at
+phi = -pi/2 (points between the light and the camera).  The interval is split
+at phi = 0 and each half is mapped with w = eps sinh(t) around its end
+(w = distance of phi from -pi/2 or +pi/2), with eps the width of the peak;
+a Gauss–Legendre rule in t is then accurate with a few nodes.
+
+The bulb (a Lambertian sphere of radiance L_b and radius r) acts on a point at
+distance d through the solid angle it subtends, 2 pi (1 - sqrt(1 - r^2/d^2)),
+with the light leaving its surface (not its centre): the far-field average of
+exp(-kappa_t path) over the visible cap is exp(-kappa_t d) E(kappa_t r) with
+E(a) = 2 ((a - 1) e^a + 1) / a^2.  Rays that hit the bulb see it attenuated,
+L_b exp(-kappa_t s_hit), and stop there.  Pixels near the bulb's silhouette are
+supersampled so that the direct view is integrated over the pixel footprint.
+
+The spot is a point source of intensity I inside a cone; each ray's
+integration range is clipped to the (convex) cone analytically.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..geometry import WaterRays, pixel_grid, trace_to_water
+from ..spec import Camera, Spec
+
+_HALF_PI = 0.5 * np.pi
+
+
+def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
+    x, w = np.polynomial.legendre.leggauss(n)
+    return 0.5 * (x + 1.0), 0.5 * w  # on [0, 1]
+
+
+def _cone_interval(u: np.ndarray, v: np.ndarray, axis: np.ndarray, cutoff_deg: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Interval [s_in, s_out] of s where c + u + s v lies inside the spot's cone.
+
+    ``u`` = p0 - c (N, 3), ``v`` unit ray directions (N, 3), ``axis`` unit (3,).
+    The forward nappe of a cone with half-angle <= 90 deg is convex, so the set
+    is one interval (empty: s_in > s_out).
+    """
+    ua, va = u @ axis, v @ axis
+    n = len(ua)
+    big = 1e30
+    if cutoff_deg >= 90.0:  # half-space (p - c).axis >= 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = -ua / va
+        s_in = np.where(va > 0, r, np.where(va < 0, -big, np.where(ua >= 0, -big, big)))
+        s_out = np.where(va < 0, r, np.where(va > 0, big, np.where(ua >= 0, big, -big)))
+        return s_in, s_out
+    k = np.cos(np.radians(cutoff_deg)) ** 2
+    a = va * va - k
+    b = ua * va - k * np.einsum("ij,ij->i", u, v)
+    c = ua * ua - k * np.einsum("ij,ij->i", u, u)
+    s_in = np.full(n, big)
+    s_out = np.full(n, -big)
+    disc = b * b - a * c
+    has = disc >= 0
+    sq = np.sqrt(np.where(has, disc, 0.0))
+    lin = np.abs(a) < 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r1 = np.where(lin, -c / (2 * b), (-b - sq) / a)
+        r2 = np.where(lin, -c / (2 * b), (-b + sq) / a)
+    lo, hi = np.minimum(r1, r2), np.maximum(r1, r2)
+    on_lo = has & np.isfinite(lo) & (ua + lo * va >= 0)
+    on_hi = has & np.isfinite(hi) & (ua + hi * va >= 0) & ~lin
+    cosang = va  # cosine between the ray and the axis
+    ahead = cosang > np.sqrt(k)  # far along the ray: inside
+    both = on_lo & on_hi
+    s_in = np.where(both, lo, s_in)
+    s_out = np.where(both, hi, s_out)
+    one = on_lo ^ on_hi
+    root = np.where(on_lo, lo, hi)
+    s_in = np.where(one & ahead, root, np.where(one, -big, s_in))
+    s_out = np.where(one & ahead, big, np.where(one, root, s_out))
+    return s_in, s_out
+
+
+class SingleScattering:
+    """Analytic single-scattering image of one capture (see module docstring).
+
+    Parameters
+    ----------
+    spec : Spec
+        The capture spec (geometry only is used).
+    image_index : int
+        Which image's camera/light overrides to use (0 when the spec has none).
+    channels : tuple of str, optional
+        Channels rendered, default ``spec.channels``.
+    nodes : int
+        Gauss–Legendre nodes on the half-interval with the forward peak (phi < 0).
+    nodes_upper : int
+        Nodes on the smooth half (phi > 0) when every g >= 0 (else ``nodes``).
+    supersample : int
+        ``n`` gives n x n samples per pixel everywhere (1: pixel centres).
+    bulb_supersample : int
+        Samples per pixel side for pixels near the bulb's silhouette.
+    """
+
+    def __init__(self, spec: Spec, image_index: int = 0, *, channels: tuple[str, ...] | None = None,
+                 nodes: int = 8, nodes_upper: int = 4, supersample: int = 1,
+                 bulb_supersample: int = 8):
+        self.spec = spec
+        self.camera: Camera = spec.camera_for(image_index) if spec.images else spec.camera
+        self.light = spec.light_for(image_index) if spec.images else spec.light
+        self.channels = tuple(channels or spec.channels)
+        self.shape = (self.camera.height, self.camera.width)
+        self.nodes, self.nodes_upper = int(nodes), int(nodes_upper)
+        self._rules = {n: _gauss_legendre(n) for n in {self.nodes, self.nodes_upper}}
+        self._build(int(supersample), int(bulb_supersample))
+
+    # ----------------------------------------------------------------- set-up
+    def _rays(self, sub: int, mask: np.ndarray | None = None):
+        x, y = pixel_grid(self.camera, sub=sub)
+        pix = np.broadcast_to(np.arange(x.shape[0] * x.shape[1]).reshape(x.shape[:2])[..., None],
+                              x.shape)
+        if mask is not None:
+            x, y, pix = x[mask], y[mask], pix[mask]
+        rays = trace_to_water(self.camera, self.spec.tank, self.spec.medium_ior,
+                              np.ravel(x), np.ravel(y))
+        return rays, np.ravel(pix), np.full(np.size(pix), 1.0 / sub**2)
+
+    def _build(self, sub: int, bulb_sub: int) -> None:
+        c = self.light.position
+        rays, pix, wts = self._rays(sub)
+        if self.light.type == "bulb" and bulb_sub > sub:
+            # pixels whose centre ray passes near the bulb get a finer footprint integral
+            centre, _, _ = self._rays(1)
+            h_c = self._closest(centre, c)[1].reshape(self.shape)
+            footprint = np.linalg.norm(c - self.camera.position) / min(self.camera.fx, self.camera.fy)
+            near = h_c < self.light.radius + 2.0 * footprint
+            keep = ~near.ravel()[pix]
+            r2, p2, w2 = self._rays(bulb_sub, np.broadcast_to(near[..., None],
+                                                              (*self.shape, bulb_sub**2)))
+            rays = WaterRays(*(np.concatenate([getattr(rays, f)[keep], getattr(r2, f)])
+                               for f in ("origin", "direction", "length", "factor")))
+            pix, wts = np.concatenate([pix[keep], p2]), np.concatenate([wts[keep], w2])
+        live = rays.factor > 0
+        self._pix, self._wts = pix[live], wts[live] * rays.factor[live]
+        o, v, length = rays.origin[live], rays.direction[live], rays.length[live]
+        s0, h = self._closest(WaterRays(o, v, length, rays.factor[live]), c)
+        lo, hi = np.zeros_like(s0), length.copy()
+        self._hit = np.zeros(len(s0), bool)
+        self._s_hit = np.zeros(len(s0))
+        if self.light.type == "bulb":
+            r = self.light.radius
+            s_hit = s0 - np.sqrt(np.clip(r * r - h * h, 0.0, None))
+            self._hit = (h < r) & (s_hit > 0) & (s_hit < length)
+            self._s_hit = np.where(self._hit, s_hit, 0.0)
+            hi = np.where(self._hit, s_hit, hi)
+        else:
+            s_in, s_out = _cone_interval(o - c, v, self.light.direction, self.light.cutoff_deg)
+            lo, hi = np.maximum(lo, s_in), np.minimum(hi, s_out)
+        hfloor = 1e-9 * max(self.spec.tank.inner_size)
+        h = np.maximum(h, hfloor)
+        self._s0, self._h = s0, h
+        empty = hi <= lo
+        self._phi_a = np.where(empty, 0.0, np.arctan2(lo - s0, h))
+        self._phi_b = np.where(empty, 0.0, np.arctan2(hi - s0, h))
+
+    @staticmethod
+    def _closest(rays: WaterRays, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u = c - rays.origin
+        s0 = np.einsum("ij,ij->i", u, rays.direction)
+        h = np.linalg.norm(u - s0[:, None] * rays.direction, axis=1)
+        return s0, h
+
+    # ----------------------------------------------------------------- render
+    def _panel_nodes(self, sel, w_a, w_b, eps, n: int, upper: bool, from_end: bool,
+                     r_bulb: float):
+        """Nodes of one half for rays ``sel``: w in [w_a, w_b] from -pi/2 (lower) or +pi/2 (upper).
+
+        The nodes follow w = w_a + eps sinh(t) (or w_b - eps sinh(t)), which resolves a peak
+        of width ``eps`` at that end of the interval and is near-logarithmic beyond it.
+
+        Returns (path length d + s, sin^2(w/2), weight including the Jacobian and the bulb's
+        solid-angle factor), each of shape (len(sel), n).
+        """
+        x01, w01 = self._rules[n]
+        span = np.arcsinh((w_b - w_a) / eps)[:, None]
+        et = np.exp(span * x01[None, :])
+        e2 = 0.5 * eps[:, None]
+        dw = e2 * (et - 1.0 / et)  # sinh map anchored at w_a (or at w_b when from_end)
+        w = (w_b[:, None] - dw) if from_end else (w_a[:, None] + dw)
+        weight = e2 * (et + 1.0 / et) * span * w01[None, :]
+        sh, ch = np.sin(0.5 * w), np.cos(0.5 * w)
+        h, s0 = self._h[sel][:, None], self._s0[sel][:, None]
+        with np.errstate(divide="ignore"):
+            path = s0 + (h * ch / sh if upper else h * sh / ch)
+        if r_bulb > 0:  # exact solid angle of the sphere instead of pi r^2 / d^2
+            q = np.clip((r_bulb / h) * (2 * sh * ch), 0.0, 1.0) ** 2  # (r/d)^2, d = h / sin w
+            weight = weight * np.where(q > 1e-6, 2 * (1 - np.sqrt(1 - q)) / np.maximum(q, 1e-300),
+                                       1 + 0.25 * q)
+        return path, sh * sh, weight
+
+    def _line_integrals(self, kt: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """int p exp(-kt (d+s)) (source factor) dphi per ray and channel, shape (N, C).
+
+        The node positions are shared by the channels (the narrowest peak width wins).
+        """
+        pa, pb = self._phi_a, self._phi_b
+        r = self.light.radius if self.light.type == "bulb" else 0.0
+        eps_g = np.clip((1 - np.abs(g)) / np.sqrt(np.abs(g) + 1e-3), 1e-4, 1.0)
+        kth = np.max(kt) * self._h + 1e-300
+        fwd, back = g >= 0, g < 0
+        eg_fwd = eps_g[fwd].min() if fwd.any() else 1.0
+        eg_back = eps_g[back].min() if back.any() else 1.0
+        total = np.zeros((len(pa), len(kt)))
+        for upper, sel in ((False, np.flatnonzero(pa < 0)), (True, np.flatnonzero(pb > 0))):
+            if not len(sel):
+                continue
+            if upper:  # w = pi/2 - phi; attenuation falls towards w = 0 with scale 1/(kt h)
+                w_a, w_b = _HALF_PI - pb[sel], _HALF_PI - np.maximum(pa[sel], 0.0)
+                if back.any():  # backward HG peak at w = 0
+                    eps, n, from_end = np.minimum(np.hypot(eg_back, w_a), 1.0), self.nodes, False
+                else:
+                    eps, n, from_end = np.clip(1.0 / kth[sel], 1e-4, 1.0), self.nodes_upper, True
+            else:  # w = phi + pi/2; forward HG peak and attenuation peak at w = 0
+                w_a, w_b = pa[sel] + _HALF_PI, np.minimum(pb[sel], 0.0) + _HALF_PI
+                eps = np.clip(np.minimum(np.hypot(eg_fwd, w_a), 2.0 / kth[sel]), 1e-4, 1.0)
+                n, from_end = self.nodes, False
+            path, sin2, weight = self._panel_nodes(sel, w_a, w_b, eps, n, upper, from_end, r)
+            for k, (ktk, gk) in enumerate(zip(kt, g)):
+                # HG with cos(theta) = +-cos w written without cancellation near the peak
+                denom = ((1 + gk) ** 2 - 4 * gk * sin2) if upper else ((1 - gk) ** 2 + 4 * gk * sin2)
+                f = np.exp(-ktk * path) / (denom * np.sqrt(denom))
+                total[sel, k] += (1 - gk * gk) / (4 * np.pi) * np.einsum("ij,ij->i", f, weight)
+        return total
+
+    def render(self, kappa_a, kappa_s, g, brightness) -> np.ndarray:
+        """Image (H, W, C) of the radiance at the camera; see ForwardModel."""
+        ka, ks, gg, br = (np.broadcast_to(np.asarray(a, float), (len(self.channels),))
+                          for a in (kappa_a, kappa_s, g, brightness))
+        kt = ka + ks
+        n_pix = self.shape[0] * self.shape[1]
+        out = np.empty((*self.shape, len(self.channels)))
+        scat = ks > 0
+        lines = np.zeros((len(self._h), len(kt)))
+        if scat.any():
+            lines[:, scat] = self._line_integrals(kt[scat], gg[scat])
+        for k in range(len(self.channels)):
+            if self.light.type == "bulb":
+                r = self.light.radius
+                a = kt[k] * r
+                e_cap = 2 * ((a - 1) * np.exp(a) + 1) / a**2 if a > 1e-4 else 1 + 2 * a / 3
+                intensity = np.pi * r * r * br[k] * e_cap
+            else:
+                intensity = br[k]
+            rad = intensity * ks[k] / self._h * lines[:, k]
+            if self.light.type == "bulb":
+                rad = rad + np.where(self._hit, br[k] * np.exp(-kt[k] * self._s_hit), 0.0)
+            out[..., k] = np.bincount(self._pix, weights=self._wts * rad,
+                                      minlength=n_pix).reshape(self.shape)
+        return out
