@@ -112,7 +112,7 @@ class SingleScattering:
     """
 
     def __init__(self, spec: Spec, image_index: int = 0, *, channels: tuple[str, ...] | None = None,
-                 nodes: int = 8, nodes_upper: int = 4, supersample: int = 1,
+                 nodes: int = 8, nodes_upper: int = 8, supersample: int = 1,
                  bulb_supersample: int = 8):
         self.spec = spec
         self.camera: Camera = spec.camera_for(image_index) if spec.images else spec.camera
@@ -195,7 +195,7 @@ class SingleScattering:
         et = np.exp(span * x01[None, :])
         e2 = 0.5 * eps[:, None]
         dw = e2 * (et - 1.0 / et)  # sinh map anchored at w_a (or at w_b when from_end)
-        w = (w_b[:, None] - dw) if from_end else (w_a[:, None] + dw)
+        w = np.where(from_end[:, None], w_b[:, None] - dw, w_a[:, None] + dw)
         weight = e2 * (et + 1.0 / et) * span * w01[None, :]
         sh, ch = np.sin(0.5 * w), np.cos(0.5 * w)
         h, s0 = self._h[sel][:, None], self._s0[sel][:, None]
@@ -226,13 +226,19 @@ class SingleScattering:
             if upper:  # w = pi/2 - phi; attenuation falls towards w = 0 with scale 1/(kt h)
                 w_a, w_b = _HALF_PI - pb[sel], _HALF_PI - np.maximum(pa[sel], 0.0)
                 if back.any():  # backward HG peak at w = 0
-                    eps, n, from_end = np.minimum(np.hypot(eg_back, w_a), 1.0), self.nodes, False
+                    eps, n = np.minimum(np.hypot(eg_back, w_a), 1.0), self.nodes
+                    from_end = np.zeros(len(sel), bool)
                 else:
-                    eps, n, from_end = np.clip(1.0 / kth[sel], 1e-4, 1.0), self.nodes_upper, True
+                    # thin (kt h < 1/2): the integrand switches on near w ~ 2 kt h and varies on
+                    # the scale of w itself; thick: it grows like exp(-kt h cot(w/2)) towards w_b
+                    k = kth[sel]
+                    from_end = k > 0.5
+                    eps = np.clip(np.where(from_end, 1.0 / k, np.maximum(2 * k, w_a)), 1e-4, 1.0)
+                    n = self.nodes_upper
             else:  # w = phi + pi/2; forward HG peak and attenuation peak at w = 0
                 w_a, w_b = pa[sel] + _HALF_PI, np.minimum(pb[sel], 0.0) + _HALF_PI
                 eps = np.clip(np.minimum(np.hypot(eg_fwd, w_a), 2.0 / kth[sel]), 1e-4, 1.0)
-                n, from_end = self.nodes, False
+                n, from_end = self.nodes, np.zeros(len(sel), bool)
             path, sin2, weight = self._panel_nodes(sel, w_a, w_b, eps, n, upper, from_end, r)
             for k, (ktk, gk) in enumerate(zip(kt, g)):
                 # HG with cos(theta) = +-cos w written without cancellation near the peak
