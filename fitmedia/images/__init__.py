@@ -1,0 +1,10 @@
+"""Image input: reading linear photographs, merging brackets, estimating noise.
+
+Importing this package opens no files and does not import OpenCV, tifffile or
+rawpy; the readers import them when called.
+"""
+
+from .io import LoadedImage, load_entry, read_image, write_float_tiff
+from .noise import estimate_noise
+
+__all__ = ["LoadedImage", "estimate_noise", "load_entry", "read_image", "write_float_tiff"]

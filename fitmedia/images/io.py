@@ -1,0 +1,346 @@
+"""Reading linear photographs and turning an image entry into one radiance map.
+
+Supported files (CAPTURE_SPEC.md, "Image files"): 16-bit and float TIFF,
+16- and 8-bit PNG, OpenEXR and camera RAW (decoded linearly by rawpy).  Every
+bad file raises :class:`~fitmedia.errors.ImageError` whose one-line message
+names the file and what is wrong; library exceptions never escape.
+
+Units: a file's own values are "file units" (0..65535 for 16-bit files);
+:func:`load_entry` divides by the exposure time, so its output is in file
+units per second.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import warnings
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ImageError, InputError
+from ..spec import ImageEntry
+from ..util import atomic_write
+
+TIFF_EXT = frozenset({".tif", ".tiff"})
+PNG_EXT = frozenset({".png"})
+EXR_EXT = frozenset({".exr"})
+RAW_EXT = frozenset(".dng .cr2 .cr3 .crw .nef .nrw .arw .srf .sr2 .raf .orf .rw2 .pef .srw "
+                    ".x3f .3fr .erf .kdc .mos .mrw .iiq .rwl .raw".split())
+#: A pixel channel is saturated where its raw value is >= this fraction of the level.
+SATURATION_FRACTION = 0.999
+#: :func:`load_entry` refuses an entry with more than this fraction of unusable pixels.
+MAX_UNUSABLE_FRACTION = 0.5
+#: Float images may dip below zero by this fraction of their maximum (noise after
+#: an external dark subtraction); such values are kept, not clamped.
+NEGATIVE_TOLERANCE = 1e-3
+_MAX_BYTES = 8 * 2**30  # a header claiming more than this is taken as corrupt
+_LEVELS = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}
+# What tifffile and its codecs raise on truncated or corrupt files (found by fuzzing).
+_TIFF_ERRORS = (OSError, EOFError, ValueError, TypeError, IndexError, KeyError,
+                OverflowError, struct.error, zlib.error, MemoryError)
+
+
+def _why(exc: BaseException) -> str:
+    """A library exception as one line: its type and message."""
+    msg = exc.args[0] if exc.args else ""
+    msg = msg.decode(errors="replace") if isinstance(msg, bytes) else str(msg)
+    return f"{type(exc).__name__}: {' '.join(msg.split())}"
+
+
+def _read_tiff(path: Path) -> np.ndarray:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages[0]
+            if page.dtype is None:
+                raise ImageError(f"{path}: TIFF pixel format not supported (or file corrupt)")
+            nbytes = int(np.prod(page.shape)) * page.dtype.itemsize
+            if nbytes > _MAX_BYTES:
+                raise ImageError(f"{path}: header claims a {page.shape} image "
+                                 f"({nbytes / 2**30:.0f} GiB); the file is corrupt")
+            arr = page.asarray()
+            if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE and arr.ndim == 3:
+                arr = np.moveaxis(arr, 0, -1)
+    except ImageError:
+        raise
+    except _TIFF_ERRORS as exc:
+        raise ImageError(f"{path}: not a readable TIFF file ({_why(exc)})") from None
+    return arr
+
+
+def _read_cv2(path: Path) -> np.ndarray:
+    """PNG or EXR through OpenCV, converted from its BGR(A) order to RGB(A)."""
+    os.environ["OPENCV_IO_ENABLE_OPENEXR"] = "1"  # read by OpenCV at its first EXR decode
+    import cv2
+
+    arr = None
+    try:
+        buf = np.fromfile(path, dtype=np.uint8)
+        if buf.size:
+            arr = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    except (OSError, cv2.error) as exc:
+        raise ImageError(f"{path}: cannot be read ({_why(exc)})") from None
+    if arr is None:
+        kind = "PNG" if path.suffix.lower() in PNG_EXT else "OpenEXR"
+        raise ImageError(f"{path}: not a readable {kind} file (empty, truncated or corrupt)")
+    if path.suffix.lower() in PNG_EXT and buf.size > 25 and buf[25] in (0, 4):
+        # grey or grey+alpha PNG: OpenCV expands grey+alpha to BGRA; undo that
+        return arr if arr.ndim == 2 else arr[..., [0, 3]]
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        arr = np.concatenate([arr[..., 2::-1], arr[..., 3:]], axis=-1)
+    return arr
+
+
+def _read_raw(path: Path) -> np.ndarray:
+    import rawpy
+
+    try:
+        with rawpy.imread(str(path)) as raw:
+            return raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16,
+                                   use_camera_wb=False, user_wb=[1.0, 1.0, 1.0, 1.0],
+                                   output_color=rawpy.ColorSpace.raw)
+    except (rawpy.LibRawError, OSError, MemoryError) as exc:
+        raise ImageError(f"{path}: not a readable camera RAW file ({_why(exc)})") from None
+
+
+def _read_any(path: str | Path) -> np.ndarray:
+    """The file's pixels in their own dtype: (H, W) or (H, W, C), channels in RGB(A) order."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: file not found")
+    ext = path.suffix.lower()
+    if ext in TIFF_EXT:
+        arr = _read_tiff(path)
+    elif ext in PNG_EXT or ext in EXR_EXT:
+        arr = _read_cv2(path)
+    elif ext in RAW_EXT:
+        arr = _read_raw(path)
+    else:
+        known = sorted(TIFF_EXT | PNG_EXT | EXR_EXT) + ["camera RAW (.dng, .cr2, .nef, .arw, ...)"]
+        raise ImageError(f"{path}: unknown image type '{ext}'; expected one of {', '.join(known)}")
+    if arr.ndim not in (2, 3) or min(arr.shape[:2]) < 1:
+        raise ImageError(f"{path}: array of shape {arr.shape}; expected (height, width, channels)")
+    if arr.dtype not in _LEVELS and arr.dtype.kind != "f":
+        raise ImageError(f"{path}: pixel type {arr.dtype} is not supported; expected 8- or "
+                         "16-bit unsigned integers or floating point")
+    if arr.dtype.kind == "f":
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            i, j = np.argwhere(bad)[0][:2]
+            raise ImageError(f"{path}: {np.count_nonzero(bad)} NaN or infinite values (first at "
+                             f"row {i}, column {j}); a linear image must be finite")
+        lo, hi = float(arr.min()), float(arr.max())
+        tol = NEGATIVE_TOLERANCE * max(hi, 0.0)
+        if lo < -tol:
+            raise ImageError(f"{path}: negative values down to {lo:g} (tolerance -{tol:g}, "
+                             f"{NEGATIVE_TOLERANCE:g} of the maximum); a linear image is >= 0")
+    return arr
+
+
+def read_image(path: str | Path) -> tuple[np.ndarray, float | None]:
+    """Read one linear RGB image file.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.tif``/``.tiff`` (16-bit or float), ``.png`` (8- or 16-bit), ``.exr``
+        or camera RAW file.  RAW files are decoded linearly by rawpy in the
+        camera's own colour space (no white balance, no colour matrix, no
+        brightening, 16-bit output).  An alpha channel is dropped.
+
+    Returns
+    -------
+    image : ndarray of shape (H, W, 3), float64
+        Channels R, G, B in file units.
+    level : float or None
+        The saturation level in file units implied by the pixel type: 65535 for
+        16-bit files and RAW, 255 for 8-bit, None for floating point.
+
+    Raises
+    ------
+    ImageError
+        Missing, unreadable or truncated file; unknown extension; not 3 or 4
+        channels; NaN or infinite values; a float image with values below
+        ``-NEGATIVE_TOLERANCE * max``.
+    """
+    arr = _read_any(path)
+    nch = 1 if arr.ndim == 2 else arr.shape[2]
+    if nch not in (3, 4):
+        raise ImageError(f"{path}: has {nch} channel{'s' if nch > 1 else ''}; an RGB image "
+                         "(3 channels, or 4 with alpha) is needed")
+    level = _LEVELS.get(arr.dtype)
+    return arr[..., :3].astype(np.float64), level
+
+
+def _read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool, True where the mask file is non-zero in every channel (alpha included)."""
+    arr = _read_any(path)
+    if arr.shape[:2] != tuple(shape):
+        raise ImageError(f"{path}: mask is {arr.shape[1]}x{arr.shape[0]} pixels (width x height), "
+                         f"expected {shape[1]}x{shape[0]} like the images")
+    return arr != 0 if arr.ndim == 2 else np.all(arr != 0, axis=2)
+
+
+def write_float_tiff(path: str | Path, image: np.ndarray) -> None:
+    """Write a linear RGB image as a float32 TIFF, atomically.
+
+    The file is written to a temporary name in the same folder and renamed onto
+    ``path``, so a killed process leaves the old file or the new one.
+
+    Parameters
+    ----------
+    path : str or Path
+        Destination; its folder is created if missing.
+    image : ndarray of shape (H, W, 3)
+        Channels R, G, B, finite; any unit (stored as given).
+
+    Raises
+    ------
+    ValueError
+        ``image`` has the wrong shape or non-finite values.
+    """
+    import tifffile
+
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"write_float_tiff: image of shape {img.shape}; expected (H, W, 3)")
+    img = np.ascontiguousarray(img, dtype=np.float32)
+    if not np.isfinite(img).all():
+        raise ValueError(f"write_float_tiff: {path}: image has NaN or infinite values "
+                         "(or values beyond the float32 range)")
+    atomic_write(path, lambda tmp: tifffile.imwrite(tmp, img, photometric="rgb"))
+
+
+@dataclass(frozen=True)
+class LoadedImage:
+    """One image entry, merged and exposure-normalised.
+
+    Attributes
+    ----------
+    data : ndarray of shape (H, W, 3), float64
+        Dark-subtracted signal in file units per second, channels R, G, B.
+        Finite everywhere; where ``valid`` is False the value is a placeholder.
+    valid : ndarray of shape (H, W, 3), bool
+        False where the channel is saturated in every frame or the mask is zero.
+    n_saturated : int
+        Pixels with at least one requested channel saturated in every frame.
+    n_masked : int
+        Pixels where the mask is zero.
+    source : str
+        The file path(s), for messages.
+    """
+
+    data: np.ndarray
+    valid: np.ndarray
+    n_saturated: int
+    n_masked: int
+    source: str
+
+
+def _frame(path: Path, shape: tuple[int, int], what: str) -> tuple[np.ndarray, float | None]:
+    img, level = read_image(path)
+    if img.shape[:2] != tuple(shape):
+        raise ImageError(f"{path}: {what} is {img.shape[1]}x{img.shape[0]} pixels (width x "
+                         f"height), expected {shape[1]}x{shape[0]} (camera.size)")
+    return img, level
+
+
+def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
+               channels: tuple[int, ...] = (0, 1, 2)) -> LoadedImage:
+    """Read an image entry (one photo or an exposure bracket) as one linear image.
+
+    Each frame k gives ``s_k = raw_k - dark_k``.  A pixel channel is saturated
+    in frame k where ``raw_k >= SATURATION_FRACTION * level``, the level being
+    ``entry.saturation`` if given, else the file type's (65535, 255; float
+    files have none).  The result is the exposure-weighted mean of
+    ``s_k / t_k`` over unsaturated frames, ``sum(s_k) / sum(t_k)``: longer
+    exposures, with better SNR, count more.  Where every frame is saturated
+    the value is the same sum over all frames, marked invalid.
+
+    Parameters
+    ----------
+    entry : fitmedia.spec.ImageEntry
+        Paths, exposure times in seconds, optional dark frame(s) (one, or one
+        per path), mask, saturation level and response.
+    expected_shape : tuple of int
+        (H, W) in pixels, i.e. ``(camera.height, camera.width)``.
+    channels : tuple of int
+        Indices (0 = R, 1 = G, 2 = B) of the channels that will be used; only
+        they count towards ``n_saturated`` and the unusable fraction.
+
+    Returns
+    -------
+    LoadedImage
+
+    Raises
+    ------
+    ImageError
+        A bad file, a frame or dark of the wrong size, a dark of another pixel
+        type, or more than ``MAX_UNUSABLE_FRACTION`` of the pixels saturated or
+        masked in the requested channels.
+
+    Warns
+    -----
+    UserWarning
+        An 8-bit frame without ``entry.response == "linear"``: it is read as
+        linear, but 8-bit files usually carry a tone curve, so the result is biased.
+    """
+    chans = tuple(channels)
+    if not chans or any(c not in (0, 1, 2) for c in chans):
+        raise InputError(f"channels: got {channels!r}; expected indices among 0, 1, 2 (R, G, B)")
+    paths, exps, darks = list(entry.paths), list(entry.exposures), list(entry.darks)
+    source = " + ".join(str(p) for p in paths)
+    if not paths or len(exps) != len(paths) or not all(t > 0 for t in exps):
+        raise InputError(f"{source}: exposure_s: {exps} for {len(paths)} path(s); expected one "
+                         "positive time per path")
+    if len(darks) not in (0, 1, len(paths)):
+        raise InputError(f"{source}: dark: {len(darks)} dark frames for {len(paths)} paths")
+    shape = (int(expected_shape[0]), int(expected_shape[1]))
+    num = np.zeros(shape + (3,))
+    den = np.zeros(shape + (3,))
+    all_num = np.zeros(shape + (3,))
+    warned = False
+    dark_cache: dict[Path, tuple[np.ndarray, float | None]] = {}
+    for k, (path, t) in enumerate(zip(paths, exps)):
+        raw, level = _frame(path, shape, "image")
+        if level == 255.0 and entry.response != "linear" and not warned:
+            warnings.warn(f"{path}: 8-bit image without 'response: linear'; read as linear, but "
+                          "8-bit files usually carry a tone curve, so the result is biased",
+                          UserWarning, stacklevel=2)
+            warned = True
+        signal = raw
+        if darks:
+            dpath = darks[k if len(darks) > 1 else 0]
+            if dpath not in dark_cache:
+                dark_cache[dpath] = _frame(dpath, shape, "dark frame")
+            dark, dlevel = dark_cache[dpath]
+            if dlevel != level:
+                raise ImageError(f"{dpath}: dark frame has saturation level {dlevel} (pixel "
+                                 f"type) but the image {path} has {level}; they must match")
+            signal = raw - dark
+        sat_level = entry.saturation if entry.saturation is not None else level
+        ok = raw < SATURATION_FRACTION * sat_level if sat_level is not None else True
+        num += np.where(ok, signal, 0.0)
+        den += np.where(ok, t, 0.0)
+        all_num += signal
+    usable = den > 0
+    data = np.where(usable, num / np.where(usable, den, 1.0), all_num / sum(exps))
+    mask_ok = np.ones(shape, bool) if entry.mask is None else _read_mask(entry.mask, shape)
+    valid = usable & mask_ok[..., None]
+    saturated = ~usable[..., chans].all(axis=2)
+    n_sat, n_masked = int(np.count_nonzero(saturated)), int(np.count_nonzero(~mask_ok))
+    frac = np.count_nonzero(saturated | ~mask_ok) / saturated.size
+    if frac > MAX_UNUSABLE_FRACTION:
+        fs, fm = 100.0 * n_sat / saturated.size, 100.0 * n_masked / saturated.size
+        what = (f"is saturated in {fs:.0f}% of pixels" if fs > 100 * MAX_UNUSABLE_FRACTION else
+                f"is saturated or masked in {100 * frac:.0f}% of pixels ({fs:.0f}% saturated, "
+                f"{fm:.0f}% masked)")
+        raise ImageError(f"{source}: {what}; at most {100 * MAX_UNUSABLE_FRACTION:.0f}% may be "
+                         "unusable (use a shorter exposure or an exposure bracket)")
+    return LoadedImage(data=data, valid=valid, n_saturated=n_sat, n_masked=n_masked,
+                       source=source)
