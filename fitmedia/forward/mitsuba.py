@@ -1,0 +1,300 @@
+"""Full light transport with Mitsuba 3 (all scattering orders, or a chosen depth).
+
+The scene is built from the capture spec in millimetres (see ``docs/mitsuba.md``):
+
+* camera: Mitsuba's ``perspective`` sensor at ``camera.position`` looking at
+  ``camera.look_at`` with ``camera.up``; horizontal field of view
+  2 atan(W / (2 fx)) and principal point offsets (0.5 - cx/W, 0.5 - cy/H) in
+  film fractions, which reproduces the pinhole of CAPTURE_SPEC.md (x to the
+  right, y down, pixel (i, j) centred at (j + 0.5, i + 0.5)); a ``box``
+  reconstruction filter so each pixel integrates its own footprint.  Mitsuba's
+  perspective camera has square pixels: fx and fy must agree to 1e-3.
+* front wall: two smooth ``dielectric`` rectangles the size of the tank's
+  front face, air/glass at z = depth/2 + thickness and glass/water at
+  z = depth/2 (one air/water rectangle when the thickness is 0).
+* the other five walls: rectangles with a black ``diffuse`` BSDF (all light
+  that reaches them is lost).
+* the water: the six wall rectangles bound it; the glass/water rectangle
+  carries the ``homogeneous`` medium (``hg`` phase function) as its interior,
+  so camera rays enter the medium there.  sigma_t = kappa_t (1/mm, the scene is
+  in mm), albedo = kappa_s / kappa_t.
+* bulb: a ``sphere`` ``area`` emitter of radiance 1 with a black BSDF in the
+  water; spot: a ``spot`` emitter of intensity 1 with
+  ``cutoff_angle = beam_width = cutoff_deg`` (constant inside the cone).
+
+Images are rendered per channel with a mono variant (unit light, then scaled
+by the brightness), in the units of the ForwardModel interface: Mitsuba's
+``dielectric`` scales transmitted radiance by (n_out / n_in)^2, so a pixel that
+sees the bulb through clear water reads L_b T_air/glass T_glass/water / n_water^2.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import numpy as np
+
+from ..errors import InputError
+from ..spec import Camera, Light, Spec
+
+log = logging.getLogger(__name__)
+
+#: Largest number of Monte Carlo samples (pixels x spp) traced in one wavefront.
+MAX_SAMPLES_PER_PASS = 1 << 22
+INTEGRATORS = ("volpath", "prbvolpath")
+
+
+def single_scattering_depth(spec: Spec) -> int:
+    """Mitsuba ``max_depth`` that renders scattering orders 0 and 1 exactly.
+
+    Every surface crossing counts as one bounce in Mitsuba's path depth, so a
+    camera path is: camera -> air/glass (1) -> glass/water (2) -> scattering
+    point (3) -> light (4).  With a front wall of thickness 0 there is one
+    interface less.  ``single_scattering_depth(spec) - 1`` renders order 0
+    only (the bulb seen directly).  Verified in ``tests/test_mitsuba_forward.py``.
+    """
+    return 4 if spec.tank.wall_thickness > 0 else 3
+
+
+def _geometry_of(spec: Spec, image_index: int) -> tuple[Camera, Light]:
+    if spec.images:
+        if not 0 <= image_index < len(spec.images):
+            raise InputError(f"image_index: got {image_index}, the spec has {len(spec.images)} "
+                             f"image(s) (0 .. {len(spec.images) - 1})")
+        return spec.camera_for(image_index), spec.light_for(image_index)
+    if image_index != 0:
+        raise InputError(f"image_index: got {image_index}, the spec has no images (use 0)")
+    return spec.camera, spec.light
+
+
+def _sensor_dict(mi, cam: Camera) -> dict:
+    if abs(cam.fx - cam.fy) > 1e-3 * cam.fx:
+        raise InputError(f"camera.fy: got {cam.fy:g} with fx {cam.fx:g}: Mitsuba's perspective "
+                         f"camera needs square pixels (fx == fy to 1e-3)")
+    fov = math.degrees(2.0 * math.atan(0.5 * cam.width / cam.fx))
+    return {
+        "type": "perspective", "fov": fov, "fov_axis": "x",
+        "principal_point_offset_x": 0.5 - cam.cx / cam.width,
+        "principal_point_offset_y": 0.5 - cam.cy / cam.height,
+        "near_clip": 1e-2, "far_clip": 1e7,
+        "to_world": mi.ScalarTransform4f().look_at(origin=cam.position.tolist(),
+                                                   target=cam.look_at.tolist(), up=cam.up.tolist()),
+        "sampler": {"type": "independent"},
+        "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height,
+                 "rfilter": {"type": "box"}, "pixel_format": "luminance",
+                 "component_format": "float32"},
+    }
+
+
+def _rect(mi, center, axis: int, sign: float, half_a: float, half_b: float) -> dict:
+    """A rectangle centred at ``center`` with normal ``sign * e_axis``.
+
+    Its half-extents are (half_a, half_b) along the two other axes, in order.
+    """
+    T = mi.ScalarTransform4f
+    if axis == 2:
+        rot = T() if sign > 0 else T().rotate([0, 1, 0], 180)
+    elif axis == 0:
+        rot = T().rotate([0, 1, 0], 90 * sign)   # +z -> +-x; local x -> -+z, y -> y
+        half_a, half_b = half_b, half_a           # local x spans z, local y spans y
+    else:
+        rot = T().rotate([1, 0, 0], -90 * sign)  # +z -> +-y; local y spans z
+    return {"type": "rectangle",
+            "to_world": T().translate(list(map(float, center))) @ rot @ T().scale([half_a, half_b, 1])}
+
+
+def _light_dict(mi, light: Light) -> dict:
+    black = {"type": "diffuse", "reflectance": 0.0}
+    if light.type == "bulb":
+        return {"type": "sphere", "center": light.position.tolist(), "radius": light.radius,
+                "emitter": {"type": "area", "radiance": 1.0}, "bsdf": black}
+    d = np.asarray(light.direction, float)
+    up = np.array([0.0, 1.0, 0.0]) if abs(d[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    return {"type": "spot", "intensity": 1.0, "cutoff_angle": float(light.cutoff_deg),
+            "beam_width": float(light.cutoff_deg),
+            "to_world": mi.ScalarTransform4f().look_at(
+                origin=light.position.tolist(), target=(light.position + d).tolist(),
+                up=up.tolist())}
+
+
+def scene_dict(mi, spec: Spec, image_index: int = 0, *, max_depth: int = -1,
+               integrator: str = "volpath") -> dict:
+    """The Mitsuba scene dictionary of one image of ``spec`` (unit light, clear medium).
+
+    The medium has id ``water`` (parameters ``water.sigma_t.value.value``,
+    ``water.albedo.value.value``, ``water.phase_function.g``), the light id ``light``.
+    """
+    if integrator not in INTEGRATORS:
+        raise InputError(f"integrator: got {integrator!r}, expected one of {', '.join(INTEGRATORS)}")
+    cam, light = _geometry_of(spec, image_index)
+    hx, hy, hz = spec.tank.half
+    t = spec.tank.wall_thickness
+    n_w, n_g = spec.medium_ior, spec.tank.wall_ior
+    black = {"type": "diffuse", "reflectance": 0.0}
+    d: dict = {
+        "type": "scene",
+        "integrator": {"type": integrator, "max_depth": int(max_depth)},
+        "sensor": _sensor_dict(mi, cam),
+        "water": {"type": "homogeneous", "sigma_t": 0.0, "albedo": 0.0, "scale": 1.0,
+                  "phase": {"type": "hg", "g": 0.0}},
+        "light": _light_dict(mi, light),
+    }
+    inner = _rect(mi, (0, 0, hz), 2, +1, hx, hy)
+    if t > 0:
+        d["wall_air_glass"] = {**_rect(mi, (0, 0, hz + t), 2, +1, hx, hy),
+                               "bsdf": {"type": "dielectric", "int_ior": n_g, "ext_ior": 1.0}}
+        d["wall_glass_water"] = {**inner, "bsdf": {"type": "dielectric", "int_ior": n_w,
+                                                   "ext_ior": n_g},
+                                 "interior": {"type": "ref", "id": "water"}}
+    else:
+        d["wall_air_water"] = {**inner, "bsdf": {"type": "dielectric", "int_ior": n_w,
+                                                 "ext_ior": 1.0},
+                               "interior": {"type": "ref", "id": "water"}}
+    # the five black walls, normals pointing out of the water
+    d["wall_back"] = {**_rect(mi, (0, 0, -hz), 2, -1, hx, hy), "bsdf": black}
+    d["wall_left"] = {**_rect(mi, (-hx, 0, 0), 0, -1, hy, hz), "bsdf": black}
+    d["wall_right"] = {**_rect(mi, (hx, 0, 0), 0, +1, hy, hz), "bsdf": black}
+    d["wall_bottom"] = {**_rect(mi, (0, -hy, 0), 1, -1, hx, hz), "bsdf": black}
+    d["wall_top"] = {**_rect(mi, (0, hy, 0), 1, +1, hx, hz), "bsdf": black}
+    return d
+
+
+def _as_channels(name: str, value, n: int) -> np.ndarray:
+    v = np.asarray(value, dtype=float)
+    if v.ndim == 0:
+        v = np.full(n, float(v))
+    if v.shape != (n,):
+        raise InputError(f"{name}: expected {n} values (one per channel), got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"{name}: got {v.tolist()}: values must be finite")
+    return v
+
+
+class MitsubaModel:
+    """Monte Carlo image of one capture with Mitsuba 3 (ForwardModel interface).
+
+    Parameters
+    ----------
+    spec : Spec
+        The capture spec (geometry only).
+    image_index : int
+        Which image's camera/light overrides to use (0 when the spec has none).
+    spp : int
+        Samples per pixel per channel.
+    max_depth : int
+        Mitsuba's longest path (-1: unlimited); see :func:`single_scattering_depth`.
+    seed : int
+        Seed of the sampler; the same seed gives the same image (and the same
+        random numbers for every channel and every parameter value).
+    integrator : {"volpath", "prbvolpath"}
+    channels : tuple of str, optional
+        Channels rendered, default ``spec.channels``.
+    variant : str, optional
+        Mitsuba variant; default: :func:`fitmedia.mitsuba_env.choose_variant`.
+    """
+
+    def __init__(self, spec: Spec, image_index: int = 0, *, spp: int = 256, max_depth: int = -1,
+                 seed: int = 0, integrator: str = "volpath",
+                 channels: tuple[str, ...] | None = None, variant: str | None = None):
+        from ..mitsuba_env import import_mitsuba
+
+        if int(spp) < 1:
+            raise InputError(f"spp: got {spp}, expected a positive number of samples per pixel")
+        if int(max_depth) < -1 or int(max_depth) == 0:
+            raise InputError(f"max_depth: got {max_depth}, expected -1 (unlimited) or >= 1")
+        self.spec = spec
+        self.camera, self.light = _geometry_of(spec, image_index)
+        self.channels = tuple(channels or spec.channels)
+        self.shape = (self.camera.height, self.camera.width)
+        self.spp, self.max_depth, self.seed = int(spp), int(max_depth), int(seed)
+        self._mi = import_mitsuba(variant)
+        self.variant = self._mi.variant()
+        self._scene = self._mi.load_dict(scene_dict(self._mi, spec, image_index,
+                                                    max_depth=self.max_depth, integrator=integrator))
+        self._params = self._mi.traverse(self._scene)
+        self._state: tuple[float, float, float] | None = None
+
+    # ------------------------------------------------------------------ core
+    def _set_medium(self, kt: float, albedo: float, g: float) -> None:
+        if self._state == (kt, albedo, g):
+            return
+        p = self._params
+        p["water.sigma_t.value.value"] = kt
+        p["water.albedo.value.value"] = albedo
+        p["water.phase_function.g"] = g
+        p.update()
+        self._state = (kt, albedo, g)
+
+    def _pass_plan(self, spp: int) -> list[int]:
+        per = max(1, MAX_SAMPLES_PER_PASS // (self.shape[0] * self.shape[1]))
+        n = -(-spp // per)
+        base, extra = divmod(spp, n)
+        return [base + (1 if k < extra else 0) for k in range(n)]
+
+    def _seeds(self, n: int, stream: int = 0) -> list[int]:
+        ss = np.random.SeedSequence([self.seed, stream])
+        return [int(s) for s in ss.generate_state(n, dtype=np.uint32)]
+
+    def _render_unit(self, kt: float, albedo: float, g: float, spp: int, seed: int) -> np.ndarray:
+        """Mean over ``spp`` samples of the unit-light image (H, W), float64."""
+        self._set_medium(kt, albedo, g)
+        plan = self._pass_plan(spp)
+        seeds = [seed] if len(plan) == 1 else self._seeds(len(plan), seed)
+        acc = np.zeros(self.shape)
+        for n, s in zip(plan, seeds):
+            img = np.asarray(self._mi.render(self._scene, spp=n, seed=s), dtype=np.float64)
+            acc += n * (img[..., 0] if img.ndim == 3 else img)
+        return acc / spp
+
+    def _check(self, kappa_a, kappa_s, g, brightness):
+        c = len(self.channels)
+        ka, ks, gg, br = (_as_channels(nm, v, c) for nm, v in
+                          (("kappa_a", kappa_a), ("kappa_s", kappa_s), ("g", g),
+                           ("brightness", brightness)))
+        if np.any(ka < 0) or np.any(ks < 0):
+            raise InputError(f"kappa_a {ka.tolist()} and kappa_s {ks.tolist()} must be >= 0 (1/mm)")
+        if np.any(np.abs(gg) >= 1):
+            raise InputError(f"g: got {gg.tolist()}: need -1 < g < 1")
+        return ka, ks, gg, br
+
+    def _batches(self, kappa_a, kappa_s, g, brightness, batches: int) -> np.ndarray:
+        """Images of ``batches`` independent batches, shape (batches, H, W, C)."""
+        ka, ks, gg, br = self._check(kappa_a, kappa_s, g, brightness)
+        spp_b = max(1, -(-self.spp // batches))
+        seeds = [self.seed] if batches == 1 else self._seeds(batches, 1)
+        out = np.empty((batches, *self.shape, len(self.channels)))
+        t0 = time.perf_counter()
+        units: dict[tuple, np.ndarray] = {}  # channels with the same medium share a render
+        for k in range(len(self.channels)):
+            kt = float(ka[k] + ks[k])
+            key = (kt, float(ks[k] / kt) if kt > 0 else 0.0, float(gg[k]))
+            if key not in units:
+                units[key] = np.stack([self._render_unit(*key, spp_b, s) for s in seeds])
+            out[..., k] = units[key] * br[k]
+        log.debug("mitsuba render %s x %d spp x %d channels in %.2f s", self.shape, self.spp,
+                  len(self.channels), time.perf_counter() - t0)
+        return out
+
+    # ------------------------------------------------------------------- API
+    def render(self, kappa_a, kappa_s, g, brightness) -> np.ndarray:
+        """Image (H, W, C) float64 of the radiance at the camera (ForwardModel).
+
+        ``kappa_a``, ``kappa_s`` in 1/mm, ``g`` unitless, ``brightness`` the
+        bulb's radiance in the water (spot: its intensity), arrays of shape (C,).
+        """
+        return self._batches(kappa_a, kappa_s, g, brightness, 1)[0]
+
+    def render_with_error(self, kappa_a, kappa_s, g, brightness, *, batches: int = 8
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """Mean image and its Monte Carlo standard error, both (H, W, C).
+
+        ``spp`` is split into ``batches`` independent batches (different
+        seeds); the error is the standard deviation of the batch images over
+        sqrt(batches).
+        """
+        if int(batches) < 2:
+            raise InputError(f"batches: got {batches}, need at least 2 to estimate an error")
+        imgs = self._batches(kappa_a, kappa_s, g, brightness, int(batches))
+        return imgs.mean(axis=0), imgs.std(axis=0, ddof=1) / math.sqrt(imgs.shape[0])
