@@ -403,4 +403,4 @@ def dump_spec(data: dict, path: str | Path) -> None:
     """Write a spec dict as YAML atomically."""
     from .util import atomic_write_text
 
-    atomic_write_text(path, yaml.safe_dump(data, sort_keys=False))
+    atomic_write_text(path, yaml.safe_dump(data, sort_keys=False, default_flow_style=None))

@@ -1,0 +1,219 @@
+"""Fit a capture: load and calibrate the images, then per colour channel find
+the MAP with nlopt and sample the posterior with emcee.
+
+The channels are independent given the data (separate parameters, separate
+pixels), so each channel is its own problem; they run in parallel processes.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..images import LoadedImage, estimate_noise, load_entry
+from ..spec import CHANNELS, Spec
+from .likelihood import ChannelProblem, Observation
+from .optimize import find_map
+from .params import G_MAX, G_MIN, ChannelParams, ParameterSpace
+from .sample import run_chain
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FitOptions:
+    model: str = "single"
+    seed: int = 0
+    mcmc: bool = True
+    robust: bool = False
+    n_tau: float = 50.0
+    max_steps: int = 20000
+    n_walkers: int | None = None
+    global_evals: int = 400
+    workers: int | None = None
+    resume: bool = False
+    progress: bool = True
+
+
+@dataclass
+class Prepared:
+    """Images loaded and calibrated, ready for the per-channel problems."""
+
+    spec: Spec
+    images: list[LoadedImage]
+    clear: LoadedImage | None
+    noise: dict[str, tuple[float, float]]
+    noise_source: str
+    brightness: dict[str, float | None]
+    brightness_source: str
+    notes: list[str] = field(default_factory=list)
+
+
+def _model(spec: Spec, image_index: int | None, channel: str, options: FitOptions):
+    if options.model != "single":
+        raise InputError(f"--model: {options.model!r} is not available yet; use 'single'")
+    from ..forward.single import SingleScattering
+
+    return SingleScattering(spec, image_index, channels=(channel,))
+
+
+def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, float]]
+              ) -> dict[str, float]:
+    """The bulb's radiance per channel from the clear-water photo (weighted least squares
+    of the photo against the model image of a unit-radiance bulb in clear water)."""
+    from ..forward.single import SingleScattering
+
+    unit = SingleScattering(spec, None, channels=spec.channels).render(0.0, 0.0, 0.0, 1.0)
+    out = {}
+    src = spec.clear_water.paths[0]
+    for k, ch in enumerate(spec.channels):
+        ci = CHANNELS.index(ch)
+        m0 = unit[..., k]
+        use = (m0 > 0.05 * m0.max()) & clear.valid[..., ci] if m0.max() > 0 else m0 > 0
+        if not np.any(use):
+            raise InputError(f"calibration.clear_water: {src}: the bulb's pixels are saturated or "
+                             f"masked in channel {ch}; take a shorter exposure")
+        d = clear.data[..., ci][use]
+        gain, read = noise[ch]
+        w = 1.0 / (gain * np.maximum(d, 0) + read)
+        out[ch] = float(np.sum(w * d * m0[use]) / np.sum(w * m0[use] ** 2))
+        if not out[ch] > 0:
+            raise InputError(f"calibration.clear_water: {src}: the bulb is not brighter than the "
+                             f"background in channel {ch} (radiance estimate {out[ch]:.3g})")
+    return out
+
+
+def prepare(spec: Spec) -> Prepared:
+    """Load every image, estimate or read the noise, calibrate the light's brightness."""
+    shape = (spec.camera.height, spec.camera.width)
+    ch_idx = tuple(CHANNELS.index(c) for c in spec.channels)
+    notes: list[str] = []
+    images = []
+    for i, entry in enumerate(spec.images):
+        cam = spec.camera_for(i)
+        images.append(load_entry(entry, expected_shape=(cam.height, cam.width), channels=ch_idx))
+    clear = None
+    if spec.clear_water is not None:
+        clear = load_entry(spec.clear_water, expected_shape=shape, channels=ch_idx)
+    if spec.noise is not None:
+        noise = {c: spec.noise for c in spec.channels}
+        noise_source = "spec"
+    else:
+        noise = {}
+        for c, ci in zip(spec.channels, ch_idx):
+            noise[c] = estimate_noise(images[0].data[..., ci:ci + 1], images[0].valid[..., ci:ci + 1],
+                                      rng=0)
+        noise_source = "estimated from the first image"
+        notes.append("noise model estimated from the data (no `noise` in the spec)")
+    brightness: dict[str, float | None]
+    light = spec.light
+    if light.type == "bulb" and clear is not None:
+        brightness = calibrate(spec, clear, noise)
+        source = "clear-water photo"
+    elif light.brightness is not None:
+        brightness = {c: light.brightness[CHANNELS.index(c)] for c in spec.channels}
+        source = "spec (light.radiance / light.intensity)"
+        if light.type == "spot" and clear is not None:
+            notes.append("clear-water photo not used: a spot (point source) is not visible in it")
+    else:
+        brightness = {c: None for c in spec.channels}
+        source = "free parameter"
+        why = "a spot is not visible in a clear-water photo" if light.type == "spot" else \
+            "no calibration.clear_water"
+        notes.append(f"light brightness fitted as a free parameter ({why}): kappa_s is then only "
+                     "constrained through its product with the brightness and the glow's shape")
+    return Prepared(spec, images, clear, noise, noise_source, brightness, source, notes)
+
+
+def _kt_guess(spec: Spec, obs: list[Observation], brightness: float | None) -> float:
+    """Undiluted kappa_t from the attenuation of the directly seen bulb (bulb pixels only)."""
+    if spec.light.type != "bulb" or brightness is None:
+        return 1e-3 / min(o.concentration for o in obs)
+    best = []
+    for o in obs:
+        clear = o.model.render(0.0, 0.0, 0.0, brightness)[..., 0]
+        px = (clear > 0.5 * clear.max()) & o.valid if clear.max() > 0 else None
+        if px is None or not np.any(px):
+            continue
+        grid = np.geomspace(1e-5, 10.0, 61)
+        cost = [np.sum((np.log(np.maximum(o.data[px], 1e-30)) -
+                        np.log(np.maximum(o.model.render(kt, 0.0, 0.0, brightness)[..., 0][px],
+                                          1e-300))) ** 2) for kt in grid]
+        best.append(grid[int(np.argmin(cost))] / o.concentration)
+    return float(np.exp(np.mean(np.log(best)))) if best else 1e-3 / min(o.concentration for o in obs)
+
+
+def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np.ndarray],
+                brightness: float | None, noise: tuple[float, float], options: FitOptions,
+                checkpoint: Path | None = None, seed: int = 0) -> dict:
+    """MAP and (optionally) posterior samples of one channel; returns plain arrays/dicts."""
+    obs = []
+    for i, (d, v) in enumerate(zip(data, valid)):
+        model = _model(spec, i, channel, options)
+        support = np.bincount(model._pix, minlength=d.size).reshape(d.shape) > 0
+        obs.append(Observation(model, d, v & support, spec.images[i].concentration))
+    free = brightness is None
+    guess_b = 1.0
+    if free:
+        guess_b = float(np.max([np.percentile(d[v], 99.9) for d, v in zip(data, valid)]) / 0.5)
+    space = ParameterSpace(free_brightness=free, brightness_guess=max(guess_b, 1e-30))
+    problem = ChannelProblem(obs, space, brightness, noise, robust=options.robust)
+    kt0 = _kt_guess(spec, obs, brightness)
+    x0 = space.to_vector(ChannelParams(kt0, 0.5, 0.5, guess_b if free else None))
+    lo, hi = space.lower.copy(), space.upper.copy()
+    lo[0], hi[0] = max(lo[0], x0[0] - 3), min(hi[0], x0[0] + 3)  # global search near the guess
+    rng = np.random.default_rng([seed, CHANNELS.index(channel)])
+    problem.adapt(x0)
+    res = find_map(problem.log_posterior, x0, lo, hi, global_evals=options.global_evals,
+                   local_evals=0, seed=int(rng.integers(2**31)))
+    problem.adapt(res.x)  # quadrature tuned near the optimum, then the local search
+    res = find_map(problem.log_posterior, res.x, space.lower, space.upper, global_evals=0)
+    problem.adapt(res.x)
+    out = {"channel": channel, "names": space.names, "x_map": res.x, "map_logp": res.log_posterior,
+           "n_evals": res.n_evals, "laplace_cov": res.cov,
+           "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
+           "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
+           "free_brightness": free}
+    if options.mcmc:
+        chain = run_chain(problem.log_posterior, res.x, res.cov, space.lower, space.upper, rng=rng,
+                          checkpoint=checkpoint, name=f"channel_{channel}", resume=options.resume,
+                          n_walkers=options.n_walkers, n_tau=options.n_tau,
+                          max_steps=options.max_steps, progress=options.progress, label=channel)
+        out.update(samples=chain.samples, log_prob=chain.log_prob_samples, n_steps=chain.n_steps,
+                   tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
+                   reason=chain.reason, burn=chain.burn, thin=chain.thin)
+    return out
+
+
+def _job(args):
+    return fit_channel(*args)
+
+
+def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | None
+                 ) -> dict[str, dict]:
+    """Fit every channel (in parallel processes when there are cores); one chain file each."""
+    spec = prep.spec
+    jobs = []
+    for ch in spec.channels:
+        ci = CHANNELS.index(ch)
+        ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"chain_{ch}.h5"
+        jobs.append((spec, ch, [im.data[..., ci] for im in prep.images],
+                     [im.valid[..., ci] for im in prep.images], prep.brightness[ch], prep.noise[ch],
+                     options, ckpt, options.seed))
+    workers = options.workers or min(len(jobs), os.cpu_count() or 1)
+    if workers <= 1 or len(jobs) == 1:
+        return {j[1]: fit_channel(*j) for j in jobs}
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork")) as pool:
+        results = list(pool.map(_job, jobs))
+    return {r["channel"]: r for r in results}
+
+
+def prior_g_interval_width() -> float:
+    return 0.9 * (G_MAX - G_MIN)

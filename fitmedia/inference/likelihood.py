@@ -1,0 +1,117 @@
+"""The log-posterior of one colour channel: the one function that both the
+nlopt optimizer and the emcee sampler call.
+
+Noise model (CAPTURE_SPEC.md): variance = gain * mean + read_var, in the units
+of the exposure-normalised images, evaluated at the model's mean.  Saturated,
+masked and out-of-tank pixels are excluded; the count of excluded pixels is
+reported.  Optionally a Student-t likelihood (nu = 4) for outliers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..forward.base import ForwardModel
+from .params import ParameterSpace
+
+STUDENT_NU = 4.0
+
+
+@dataclass
+class Observation:
+    """One image of one channel.
+
+    model : forward model for this image, built for this one channel
+    data : (H, W) exposure-normalised image
+    valid : (H, W) bool, pixels used
+    concentration : the image's concentration (the medium's values scale with it)
+    """
+
+    model: ForwardModel
+    data: np.ndarray
+    valid: np.ndarray
+    concentration: float
+
+    def __post_init__(self):
+        self.flat_idx = np.flatnonzero(self.valid.ravel())
+        self.values = self.data.ravel()[self.flat_idx]
+        if not np.all(np.isfinite(self.values)):
+            raise ValueError("non-finite data in valid pixels")  # images.io masks these
+
+
+class ChannelProblem:
+    """Posterior of one channel's parameters given its observations.
+
+    Parameters
+    ----------
+    observations : list of Observation
+    space : ParameterSpace
+    brightness : float or None
+        The light's calibrated brightness; None when it is a free parameter.
+    noise : (gain, read_var)
+    robust : bool
+        Student-t (nu = 4) instead of Gaussian residuals.
+    """
+
+    def __init__(self, observations: list[Observation], space: ParameterSpace,
+                 brightness: float | None, noise: tuple[float, float], *, robust: bool = False):
+        if brightness is None and not space.free_brightness:
+            raise ValueError("brightness must be given or free")
+        self.obs = observations
+        self.space = space
+        self.brightness = brightness
+        self.gain, self.read_var = noise
+        self.robust = robust
+        self.n_pixels = int(sum(len(o.values) for o in observations))
+
+    def adapt(self, u: np.ndarray) -> None:
+        """Tune the forward models' quadrature to the parameters ``u`` (and keep it fixed).
+
+        Models without this ability (Monte Carlo) are left alone.
+        """
+        p = self.space.to_params(u)
+        for o in self.obs:
+            freeze = getattr(o.model, "freeze_nodes", None)
+            if freeze is not None:
+                freeze(o.concentration * p.kappa_t, p.g)
+
+    def render(self, u: np.ndarray) -> list[np.ndarray]:
+        """Model images (H, W) for the parameter vector ``u``."""
+        p = self.space.to_params(u)
+        b = p.brightness if self.space.free_brightness else self.brightness
+        return [o.model.render(o.concentration * p.kappa_a, o.concentration * p.kappa_s, p.g, b)[..., 0]
+                for o in self.obs]
+
+    def log_likelihood(self, u: np.ndarray) -> float:
+        total = 0.0
+        for o, img in zip(self.obs, self.render(u)):
+            m = img.ravel()[o.flat_idx]
+            var = self.gain * np.maximum(m, 0.0) + self.read_var
+            r2 = (o.values - m) ** 2 / var
+            if self.robust:
+                total += float(np.sum(-0.5 * (STUDENT_NU + 1) * np.log1p(r2 / STUDENT_NU)
+                                      - 0.5 * np.log(var)))
+            else:
+                total += float(-0.5 * np.sum(r2 + np.log(var)))
+        return total
+
+    def log_posterior(self, u: np.ndarray) -> float:
+        """log prior + log likelihood (up to a constant); -inf outside the bounds."""
+        u = np.asarray(u, float)
+        lp = self.space.log_prior(u)
+        if not np.isfinite(lp):
+            return -np.inf
+        ll = self.log_likelihood(u)
+        return lp + ll if np.isfinite(ll) else -np.inf
+
+    __call__ = log_posterior
+
+    def chi2(self, u: np.ndarray) -> tuple[float, int]:
+        """Sum of squared standardised residuals and the number of pixels."""
+        total = 0.0
+        for o, img in zip(self.obs, self.render(u)):
+            m = img.ravel()[o.flat_idx]
+            total += float(np.sum((o.values - m) ** 2 / (self.gain * np.maximum(m, 0) + self.read_var)))
+        return total, self.n_pixels

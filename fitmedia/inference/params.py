@@ -1,0 +1,92 @@
+"""Named parameters of one colour channel, their unconstrained coordinates and priors.
+
+Per channel the sampler sees
+
+* ``log_kappa_t``: log of the undiluted liquid's extinction (1/mm),
+* ``logit_albedo``: logit of the single-scattering albedo, well conditioned at
+  0.9999 (milk) where it equals ~ -log(1 - albedo) = -log(kappa_a / kappa_t),
+* ``atanh_g``: atanh of the HG anisotropy,
+* ``log_brightness`` (only when the light's brightness is not calibrated).
+
+Priors (docs/inference.md): flat in (log kappa_t, logit albedo) inside the
+bounds, which is the same as independent log-uniform (scale-invariant) priors on
+kappa_a and kappa_s (the Jacobian of that map is 1); uniform in g on
+[G_MIN, G_MAX]; log-uniform on the brightness.  Flat vectors exist only at
+the optimizer / sampler boundary.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import expit, logit
+
+LOG_KT_BOUNDS = (np.log(1e-5), np.log(1e3))  # undiluted kappa_t, 1/mm
+LOGIT_ALBEDO_BOUNDS = (-15.0, 15.0)
+G_MIN, G_MAX = -0.9, 0.995
+ATANH_G_BOUNDS = (float(np.arctanh(G_MIN)), float(np.arctanh(G_MAX)))
+LOG_BRIGHTNESS_SPAN = 12.0  # +-12 e-folds around the initial guess
+
+
+@dataclass(frozen=True)
+class ChannelParams:
+    """Physical values of one channel (undiluted liquid), 1/mm."""
+
+    kappa_t: float
+    albedo: float
+    g: float
+    brightness: float | None = None
+
+    @property
+    def kappa_s(self) -> float:
+        return self.kappa_t * self.albedo
+
+    @property
+    def kappa_a(self) -> float:
+        return self.kappa_t * (1.0 - self.albedo)
+
+
+class ParameterSpace:
+    """Maps between :class:`ChannelParams` and the flat unconstrained vector."""
+
+    def __init__(self, *, free_brightness: bool = False, brightness_guess: float = 1.0):
+        self.free_brightness = free_brightness
+        self.names = ["log_kappa_t", "logit_albedo", "atanh_g"]
+        bounds = [LOG_KT_BOUNDS, LOGIT_ALBEDO_BOUNDS, ATANH_G_BOUNDS]
+        if free_brightness:
+            c = float(np.log(brightness_guess))
+            self.names.append("log_brightness")
+            bounds.append((c - LOG_BRIGHTNESS_SPAN, c + LOG_BRIGHTNESS_SPAN))
+        self.lower = np.array([b[0] for b in bounds])
+        self.upper = np.array([b[1] for b in bounds])
+
+    @property
+    def ndim(self) -> int:
+        return len(self.names)
+
+    def to_params(self, u: np.ndarray) -> ChannelParams:
+        b = float(np.exp(u[3])) if self.free_brightness else None
+        return ChannelParams(float(np.exp(u[0])), float(expit(u[1])), float(np.tanh(u[2])), b)
+
+    def to_vector(self, p: ChannelParams) -> np.ndarray:
+        u = [np.log(p.kappa_t), logit(np.clip(p.albedo, 1e-12, 1 - 1e-12)), np.arctanh(p.g)]
+        if self.free_brightness:
+            u.append(np.log(p.brightness))
+        return np.clip(np.array(u, float), self.lower, self.upper)
+
+    def log_prior(self, u: np.ndarray) -> float:
+        if np.any(u < self.lower) or np.any(u > self.upper) or not np.all(np.isfinite(u)):
+            return -np.inf
+        # uniform in g: density in atanh g is 1 - tanh^2 = sech^2
+        return float(-2.0 * np.log(np.cosh(u[2])))
+
+    def physical_samples(self, u: np.ndarray) -> dict[str, np.ndarray]:
+        """Samples (..., ndim) -> dict of physical arrays (1/mm)."""
+        kt = np.exp(u[..., 0])
+        alb = expit(u[..., 1])
+        out = {"kappa_t": kt, "albedo": alb, "g": np.tanh(u[..., 2]),
+               "kappa_s": kt * alb, "kappa_a": kt * expit(-u[..., 1])}
+        if self.free_brightness:
+            out["brightness"] = np.exp(u[..., 3])
+        return out

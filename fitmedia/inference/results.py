@@ -1,0 +1,113 @@
+"""results.json (CAPTURE_SPEC.md) and the files beside it: posterior samples,
+data/model images for the report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..util import save_npz, write_json
+from .fit import FitOptions, Prepared, prior_g_interval_width
+
+QUANTITIES = ("kappa_a", "kappa_s", "g", "kappa_t", "albedo")
+
+
+def summarise(samples: np.ndarray | None, map_value: float) -> dict:
+    out = {"map": float(map_value)}
+    if samples is not None and len(samples):
+        q = np.percentile(samples, [5, 16, 50, 84, 95])
+        out.update(median=float(q[2]), mean=float(np.mean(samples)), std=float(np.std(samples)),
+                   q05=float(q[0]), q16=float(q[1]), q84=float(q[3]), q95=float(q[4]))
+    return out
+
+
+def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) -> dict:
+    from .params import ParameterSpace
+
+    spec = prep.spec
+    params = {q: {} for q in QUANTITIES}
+    chans = {}
+    for ch in spec.channels:
+        f = fits[ch]
+        space = ParameterSpace(free_brightness=f["free_brightness"])
+        phys = space.physical_samples(f["samples"]) if "samples" in f else {}
+        for q in QUANTITIES:
+            params[q][ch] = summarise(phys.get(q), f["map"][q])
+        chi2, n = f["chi2"]
+        info = {"map_log_posterior": f["map_logp"], "n_evals_map": f["n_evals"],
+                "chi2_per_pixel": chi2 / max(n, 1), "n_pixels": n,
+                "brightness": prep.brightness[ch] if prep.brightness[ch] is not None
+                else f["map"].get("brightness")}
+        if "samples" in f:
+            g90 = params["g"][ch]["q95"] - params["g"][ch]["q05"]
+            ks = params["kappa_s"][ch]
+            info.update(converged=bool(f["converged"]), reason=f["reason"], n_steps=f["n_steps"],
+                        autocorr_time=dict(zip(f["names"], np.asarray(f["tau"]).tolist())),
+                        acceptance_fraction=f["acceptance"], burn_in=f["burn"], thin=f["thin"],
+                        n_samples=len(f["samples"]),
+                        g_constrained=bool(g90 < 0.5 * prior_g_interval_width()),
+                        kappa_s_consistent_with_zero=bool(ks["q05"] < 1e-3 * ks["q95"]))
+        chans[ch] = info
+    diag: dict = {}
+    if options.mcmc:
+        diag.update(converged=all(chans[c]["converged"] for c in spec.channels),
+                    n_steps=int(max(chans[c]["n_steps"] for c in spec.channels)),
+                    autocorr_time_max=float(max(max(chans[c]["autocorr_time"].values())
+                                                for c in spec.channels)),
+                    acceptance_fraction=float(np.mean([chans[c]["acceptance_fraction"]
+                                                       for c in spec.channels])))
+    diag["channels"] = chans
+    images = []
+    for i, (entry, im) in enumerate(zip(spec.images, prep.images)):
+        images.append({"path": [str(p) for p in entry.paths], "concentration": entry.concentration,
+                       "n_saturated": im.n_saturated, "n_masked": im.n_masked})
+    return {
+        "fitmedia_spec": 1,
+        "model": options.model,
+        "units": {"length": "mm", "kappa": "1/mm"},
+        "channels": list(spec.channels),
+        "parameters": params,
+        "diagnostics": diag,
+        "fitmedia_version": __version__,
+        "spec": str(spec.source),
+        "name": spec.name,
+        "seed": options.seed,
+        "calibration": {"brightness_source": prep.brightness_source,
+                        "brightness": {c: chans[c]["brightness"] for c in spec.channels}},
+        "noise": {"source": prep.noise_source,
+                  "per_channel": {c: {"gain": g, "read_var": r} for c, (g, r) in prep.noise.items()}},
+        "images": images,
+        "notes": prep.notes,
+    }
+
+
+def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results: dict) -> None:
+    """results.json, samples.npz (posterior, physical and unconstrained), fit_images.npz."""
+    out_dir = Path(out_dir)
+    spec = prep.spec
+    samples = {}
+    for ch, f in fits.items():
+        if "samples" in f:
+            from .params import ParameterSpace
+
+            phys = ParameterSpace(free_brightness=f["free_brightness"]).physical_samples(f["samples"])
+            for q, v in phys.items():
+                samples[f"{ch}/{q}"] = v
+            samples[f"{ch}/unconstrained"] = f["samples"]
+            samples[f"{ch}/log_prob"] = f["log_prob"]
+        samples[f"{ch}/map_unconstrained"] = f["x_map"]
+    samples["names"] = np.array(fits[spec.channels[0]]["names"])
+    save_npz(out_dir / "samples.npz", samples)
+    imgs = {}
+    for i, im in enumerate(prep.images):
+        from ..spec import CHANNELS
+
+        idx = [CHANNELS.index(c) for c in spec.channels]
+        imgs[f"data_{i}"] = im.data[..., idx]
+        imgs[f"valid_{i}"] = im.valid[..., idx]
+        imgs[f"model_{i}"] = np.stack([fits[c]["model_images"][i] for c in spec.channels], -1)
+    imgs["channels"] = np.array(spec.channels)
+    save_npz(out_dir / "fit_images.npz", imgs)
+    write_json(out_dir / "results.json", results)

@@ -1,0 +1,112 @@
+"""Posterior sampling with emcee, started around the MAP, run until the chain
+is at least ``n_tau`` autocorrelation times long (or a step cap, reported as not
+converged), checkpointed in emcee's HDF5 backend so a killed run resumes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+
+@dataclass
+class ChainResult:
+    samples: np.ndarray  # (n_samples, ndim), burn-in discarded, thinned
+    n_steps: int
+    tau: np.ndarray
+    acceptance_fraction: float
+    converged: bool
+    reason: str
+    burn: int
+    thin: int
+    log_prob_samples: np.ndarray = field(default=None, repr=False)
+
+
+def initial_ball(x_map: np.ndarray, cov: np.ndarray | None, lower: np.ndarray, upper: np.ndarray,
+                 n_walkers: int, rng: np.random.Generator) -> np.ndarray:
+    """Walkers around the MAP: from the Laplace covariance when there is one."""
+    n = len(x_map)
+    if cov is not None:
+        p = rng.multivariate_normal(x_map, cov, size=n_walkers)
+    else:
+        p = x_map + 1e-3 * (upper - lower) * rng.standard_normal((n_walkers, n))
+    span = upper - lower
+    return np.clip(p, lower + 1e-6 * span, upper - 1e-6 * span)
+
+
+def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: np.ndarray | None,
+              lower: np.ndarray, upper: np.ndarray, *, rng: np.random.Generator,
+              checkpoint: Path | None = None, name: str = "chain", resume: bool = False,
+              n_walkers: int | None = None, n_tau: float = 50.0, max_steps: int = 20000,
+              check_every: int = 100, progress: bool = True, label: str = "") -> ChainResult:
+    """Run emcee until the chain is ``n_tau`` autocorrelation times long.
+
+    Converged means: steps >= n_tau * max(tau) and the tau estimate changed by
+    less than 5 % since the previous check.  With ``resume`` and an existing
+    checkpoint, sampling continues from its last state (no steps repeated).
+    """
+    import emcee
+    from tqdm.auto import tqdm
+
+    ndim = len(x_map)
+    n_walkers = n_walkers or max(4 * ndim, 16)
+    backend = None
+    start = None
+    if checkpoint is not None:
+        backend = emcee.backends.HDFBackend(str(checkpoint), name=name)
+        if resume and checkpoint.exists() and _has_chain(backend):
+            n_walkers = backend.shape[0]
+            start = None  # emcee continues from the stored last state
+        else:
+            backend.reset(n_walkers, ndim)
+    if checkpoint is None or not (resume and _has_chain(backend)):
+        start = initial_ball(x_map, cov, lower, upper, n_walkers, rng)
+    moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    sampler = emcee.EnsembleSampler(n_walkers, ndim, log_prob, moves=moves, backend=backend)
+    # emcee draws from a numpy RandomState; seed it from our Generator (explicit, reproducible)
+    sampler._random = np.random.RandomState(int(rng.integers(2**31 - 1)))
+    done = sampler.iteration
+    if start is None:
+        start = sampler.get_last_sample()
+    old_tau = np.inf
+    converged, reason = False, f"step cap {max_steps} reached before {n_tau:g} autocorrelation times"
+    tau = np.full(ndim, np.nan)
+    bar = tqdm(total=max_steps, initial=done, desc=f"MCMC {label}".strip(), unit="step",
+               disable=not progress, leave=False, mininterval=1.0)
+    try:
+        remaining = max_steps - done
+        for _ in sampler.sample(start, iterations=max(remaining, 0), progress=False, store=True):
+            bar.update(1)
+            it = sampler.iteration
+            if it % check_every:
+                continue
+            tau = sampler.get_autocorr_time(tol=0)
+            need = n_tau * np.max(tau)
+            bar.set_postfix_str(f"tau={np.max(tau):.0f}, need {need:.0f}")
+            if it >= need and np.all(np.abs(old_tau - tau) / tau < 0.05):
+                converged, reason = True, f"chain {it} steps >= {n_tau:g} x tau_max {np.max(tau):.1f}"
+                break
+            old_tau = tau
+    finally:
+        bar.close()
+    n_steps = sampler.iteration
+    if n_steps >= 2 * check_every and not np.all(np.isfinite(tau)):
+        tau = sampler.get_autocorr_time(tol=0)
+    elif n_steps >= check_every:
+        tau = sampler.get_autocorr_time(tol=0)
+    tmax = float(np.nanmax(tau)) if np.any(np.isfinite(tau)) else 1.0
+    burn = int(min(3 * tmax, n_steps // 2))
+    thin = max(1, int(tmax / 2))
+    samples = sampler.get_chain(discard=burn, thin=thin, flat=True)
+    logp = sampler.get_log_prob(discard=burn, thin=thin, flat=True)
+    return ChainResult(samples, n_steps, np.asarray(tau), float(np.mean(sampler.acceptance_fraction)),
+                       converged, reason, burn, thin, logp)
+
+
+def _has_chain(backend) -> bool:
+    try:
+        return backend.iteration > 0
+    except (OSError, KeyError, AttributeError):
+        return False

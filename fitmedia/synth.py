@@ -1,0 +1,114 @@
+"""Synthetic captures: render a dilution series with a forward model, add
+Poisson–Gaussian camera noise from a seeded generator, and write float TIFFs,
+a capture spec that points at them, and truth.json."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .images import write_float_tiff
+from .medium import Medium
+from .spec import CHANNELS, Spec, dump_spec
+from .util import make_rng, write_json
+
+DEFAULT_BRIGHTNESS = 1.0      # bulb radiance in the water, image units
+DEFAULT_SPOT_INTENSITY = 2.0e4  # spot radiant intensity, image units x mm^2
+DEFAULT_GAIN = 2.0e-5         # variance per unit value (a full well of 5e4 e- at value 1)
+DEFAULT_READ_VAR = 1.0e-9
+SATURATION = 4.0              # the synthetic camera clips here (written into the spec)
+
+
+@dataclass(frozen=True)
+class CameraNoise:
+    gain: float = DEFAULT_GAIN
+    read_var: float = DEFAULT_READ_VAR
+
+    def apply(self, image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Poisson photo-electrons (mean image / gain) times gain, plus Gaussian read noise."""
+        mean = np.clip(image, 0.0, None)
+        shot = rng.poisson(mean / self.gain) * self.gain if self.gain > 0 else mean
+        return shot + rng.normal(0.0, np.sqrt(self.read_var), size=image.shape)
+
+
+def _render(spec: Spec, index: int | None, medium: Medium, brightness: np.ndarray, model: str,
+            spp: int, seed: int) -> np.ndarray:
+    if model == "single":
+        from .forward.single import SingleScattering
+
+        m = SingleScattering(spec, index, channels=CHANNELS, supersample=2)
+    elif model == "full":
+        from .forward.mitsuba import MitsubaModel
+
+        m = MitsubaModel(spec, 0 if index is None else index, spp=spp, seed=seed, channels=CHANNELS)
+    else:
+        raise InputError(f"--model: expected 'single' or 'full', got {model!r}")
+    return m.render(medium.kappa_a, medium.kappa_s, medium.g, brightness)
+
+
+def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float], *,
+               tank_ml: float = 23000.0, seed: int = 0, model: str = "single", spp: int = 256,
+               brightness: float | list[float] | None = None, noise: CameraNoise = CameraNoise(),
+               medium_name: str = "") -> Path:
+    """Write a synthetic capture of ``medium`` diluted ``ml`` in ``tank_ml``; returns the spec path.
+
+    ``spec`` gives the geometry (its images and calibration are ignored).  Each
+    image's concentration is ml / tank_ml; the medium is the undiluted liquid.
+    """
+    if tank_ml <= 0 or not np.isfinite(tank_ml):
+        raise InputError(f"--tank-ml: got {tank_ml}: must be a positive volume in ml")
+    for v in ml:
+        if not (v > 0 and np.isfinite(v)):
+            raise InputError(f"--ml: got {v}: must be a positive volume in ml")
+    out = Path(out_dir)
+    rng = make_rng(seed)
+    light = spec.light
+    if brightness is None:
+        brightness = DEFAULT_BRIGHTNESS if light.type == "bulb" else DEFAULT_SPOT_INTENSITY
+    bright = np.broadcast_to(np.asarray(brightness, float), (3,)).copy()
+    raw = copy.deepcopy(spec.raw)
+    raw.pop("images", None)
+    raw.pop("calibration", None)
+    raw.pop("channels", None)
+    raw["name"] = f"synthetic-{medium_name or 'medium'}".replace(" ", "-").lower()
+    if light.type == "spot":
+        raw["light"]["intensity"] = bright.tolist()  # a spot cannot be calibrated by a photo
+    entries, truth_imgs = [], []
+    sat_note = []
+    for k, v in enumerate(ml):
+        c = v / tank_ml
+        tank_medium = medium.scaled(c)
+        clean = _render(spec, None, tank_medium, bright, model, spp, seed + 1000 + k)
+        img = noise.apply(clean, rng)
+        n_sat = int(np.sum(np.any(img >= SATURATION, axis=-1)))
+        if n_sat:
+            sat_note.append(f"image {k}: {n_sat} pixels saturated")
+        name = f"images/medium_{k:02d}_{v:g}ml.tiff"
+        write_float_tiff(out / name, np.minimum(img, SATURATION).astype(np.float32))
+        entries.append({"path": name, "exposure_s": 1.0, "concentration": float(c),
+                        "saturation": SATURATION})
+        truth_imgs.append({"path": name, "ml": v, "tank_ml": tank_ml, "concentration": c,
+                           "tank": tank_medium.as_dict()})
+    clear = _render(spec, None, medium.scaled(0.0), bright, "single", spp, seed)
+    write_float_tiff(out / "images/clear_water.tiff",
+                     np.minimum(noise.apply(clear, rng), SATURATION).astype(np.float32))
+    raw["images"] = entries
+    raw["calibration"] = {"clear_water": {"path": "images/clear_water.tiff", "exposure_s": 1.0,
+                                          "saturation": SATURATION}}
+    raw["noise"] = {"gain": noise.gain, "read_var": noise.read_var}
+    spec_path = out / "capture.yaml"
+    dump_spec(raw, spec_path)
+    write_json(out / "truth.json", {
+        "medium": medium_name, "model": model, "seed": seed,
+        "undiluted": medium.as_dict(), "images": truth_imgs,
+        "brightness": dict(zip(CHANNELS, bright.tolist())),
+        "brightness_meaning": "bulb radiance in the water" if light.type == "bulb"
+        else "spot radiant intensity in the water (image units x mm^2)",
+        "noise": {"gain": noise.gain, "read_var": noise.read_var}, "notes": sat_note,
+        "units": {"length": "mm", "kappa": "1/mm"},
+    })
+    return spec_path
