@@ -1,0 +1,89 @@
+"""Slab reflectance and transmittance by Mitsuba against an independent published reference.
+
+``tests/data/slab_references.csv`` holds total R and T of homogeneous slabs lit
+by a collimated beam, from van de Hulst (1980) via the MCML manual (Wang &
+Jacques 1995, Table 6.1) and from the adding-doubling code iadpython's test
+suite.  Neither shares code with Mitsuba, so agreement checks Mitsuba's medium,
+phase function and boundary code path as fitmedia uses it (``fitmedia.slab``).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import pytest
+
+from fitmedia.errors import InputError
+from fitmedia.slab import semi_infinite_thickness, slab_rt
+
+REFERENCES = Path(__file__).parent / "data" / "slab_references.csv"
+REL_TOL, ABS_TOL = 0.01, 0.002
+
+
+def _rows() -> list[dict]:
+    with REFERENCES.open() as fh:
+        return list(csv.DictReader(line for line in fh if not line.startswith("#")))
+
+
+def _tolerance(ref: float) -> float:
+    """1 % relative, or 0.002 absolute where the value is small."""
+    return max(REL_TOL * abs(ref), ABS_TOL)
+
+
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("row", _rows(), ids=lambda r: r["case"])
+def test_slab_matches_published_reference(row):
+    out = slab_rt(float(row["albedo"]), float(row["optical_thickness"]), float(row["g"]),
+                  float(row["n"]), mu0=float(row["mu0"]), seed=1)
+    for q in ("R", "T"):
+        ref, got, err = float(row[q]), out[q], out[f"{q}_err"]
+        tol = _tolerance(ref)
+        msg = (f"{row['case']} ({row['source']}): {q} = {got:.5f} +- {err:.5f} (MC standard error), "
+               f"reference {ref:.5f}, difference {got - ref:+.5f}, tolerance {tol:.5f}")
+        # the Monte Carlo error must be small enough for the comparison to mean something
+        assert err <= tol / 3, msg
+        assert abs(got - ref) <= tol, msg
+
+
+@pytest.mark.mitsuba
+def test_slab_is_reproducible_and_conserves_energy():
+    a = slab_rt(1.0, 1.0, 0.5, 1.4, mu0=0.6, seed=3, spp=1 << 16)
+    b = slab_rt(1.0, 1.0, 0.5, 1.4, mu0=0.6, seed=3, spp=1 << 16)
+    # same seed, same samples; only the order of float32 accumulation may differ
+    assert all(math.isclose(a[k], b[k], rel_tol=1e-5) for k in a), (a, b)
+    # no absorption: R + T = 1 up to the Monte Carlo error
+    total, err = a["R"] + a["T"], math.hypot(a["R_err"], a["T_err"])
+    assert abs(total - 1.0) < 4 * err + 1e-4, (total, err)
+
+
+@pytest.mark.mitsuba
+def test_absorbing_slab_is_fresnel_and_beer():
+    """Albedo 0, n = 1.5, normal incidence: closed form with multiple reflections."""
+    n, tau = 1.5, 0.5
+    r0, att = ((n - 1) / (n + 1)) ** 2, math.exp(-tau)
+    denom = 1 - r0**2 * att**2
+    r_ref = r0 + (1 - r0) ** 2 * r0 * att**2 / denom
+    t_ref = (1 - r0) ** 2 * att / denom
+    out = slab_rt(0.0, tau, 0.0, n, spp=1 << 16)
+    assert abs(out["R"] - r_ref) < 4 * out["R_err"] + 1e-4, (out, r_ref)
+    assert abs(out["T"] - t_ref) < 4 * out["T_err"] + 1e-4, (out, t_ref)
+
+
+def test_semi_infinite_thickness_is_thick_enough_and_bounded():
+    assert semi_infinite_thickness(0.95, 0.0) > 100
+    with pytest.raises(InputError, match="albedo"):
+        semi_infinite_thickness(1.0, 0.0)
+
+
+@pytest.mark.parametrize("kw, field", [
+    (dict(albedo=1.5), "albedo"), (dict(optical_thickness=0.0), "optical_thickness"),
+    (dict(optical_thickness=math.nan), "optical_thickness"), (dict(g=1.0), "g"),
+    (dict(n=0.5), "n"), (dict(mu0=0.0), "mu0"), (dict(spp=10), "spp")])
+def test_bad_input_is_refused(kw, field):
+    args = dict(albedo=0.5, optical_thickness=1.0, g=0.0, n=1.0)
+    extra = {k: kw.pop(k) for k in list(kw) if k in ("mu0", "spp")}
+    args.update(kw)
+    with pytest.raises(InputError, match=field):
+        slab_rt(**args, **extra)
