@@ -58,15 +58,17 @@ def single_scattering_depth(spec: Spec) -> int:
     return 4 if spec.tank.wall_thickness > 0 else 3
 
 
-def _geometry_of(spec: Spec, image_index: int) -> tuple[Camera, Light]:
-    if spec.images:
-        if not 0 <= image_index < len(spec.images):
-            raise InputError(f"image_index: got {image_index}, the spec has {len(spec.images)} "
-                             f"image(s) (0 .. {len(spec.images) - 1})")
-        return spec.camera_for(image_index), spec.light_for(image_index)
-    if image_index != 0:
-        raise InputError(f"image_index: got {image_index}, the spec has no images (use 0)")
-    return spec.camera, spec.light
+def _geometry_of(spec: Spec, image_index: int | None) -> tuple[Camera, Light]:
+    """Camera and light of image ``image_index``; None (or a spec without images):
+    the spec's base camera and light (the clear-water photo)."""
+    if image_index is None or not spec.images:
+        if image_index not in (None, 0):
+            raise InputError(f"image_index: got {image_index}, the spec has no images (use 0)")
+        return spec.camera, spec.light
+    if not 0 <= image_index < len(spec.images):
+        raise InputError(f"image_index: got {image_index}, the spec has {len(spec.images)} "
+                         f"image(s) (0 .. {len(spec.images) - 1})")
+    return spec.camera_for(image_index), spec.light_for(image_index)
 
 
 def _sensor_dict(mi, cam: Camera) -> dict:
@@ -119,7 +121,7 @@ def _light_dict(mi, light: Light) -> dict:
                 up=up.tolist())}
 
 
-def scene_dict(mi, spec: Spec, image_index: int = 0, *, max_depth: int = -1,
+def scene_dict(mi, spec: Spec, image_index: int | None = 0, *, max_depth: int = -1,
                integrator: str = "volpath") -> dict:
     """The Mitsuba scene dictionary of one image of ``spec`` (unit light, clear medium).
 
@@ -179,8 +181,9 @@ class MitsubaModel:
     ----------
     spec : Spec
         The capture spec (geometry only).
-    image_index : int
-        Which image's camera/light overrides to use (0 when the spec has none).
+    image_index : int or None
+        Which image's camera/light overrides to use; None for the spec's base
+        camera and light (the clear-water photo).
     spp : int
         Samples per pixel per channel.
     max_depth : int
@@ -195,7 +198,7 @@ class MitsubaModel:
         Mitsuba variant; default: :func:`fitmedia.mitsuba_env.choose_variant`.
     """
 
-    def __init__(self, spec: Spec, image_index: int = 0, *, spp: int = 256, max_depth: int = -1,
+    def __init__(self, spec: Spec, image_index: int | None = 0, *, spp: int = 256, max_depth: int = -1,
                  seed: int = 0, integrator: str = "volpath",
                  channels: tuple[str, ...] | None = None, variant: str | None = None):
         from ..mitsuba_env import import_mitsuba
