@@ -139,7 +139,7 @@ def test_single_scattering_matches_brute_force_quadrature_bulb(g):
     bulb radii from its centre (closer in, the point-source model itself is approximate)."""
     spec = make_spec()
     ka, ks = 2e-3, 0.03
-    model = SingleScattering(spec, bulb_supersample=1)
+    model = SingleScattering(spec, bulb_supersample=1, halo_supersample=1, box_filter=False)
     img = model.render(ka, ks, g, 1.0)[..., 0]
     h = np.zeros(img.size)
     np.put(h, model._pix, model._h)
@@ -157,7 +157,7 @@ def test_single_scattering_matches_brute_force_spot():
     light = {"type": "spot", "position": [60, 10, 30], "direction": [-1, 0, -0.3], "cutoff_deg": 12}
     spec = make_spec(light=light)
     ka, ks, g = 1e-3, 0.02, 0.8
-    img = SingleScattering(spec).render(ka, ks, g, 1.0)[..., 0]
+    img = SingleScattering(spec, box_filter=False).render(ka, ks, g, 1.0)[..., 0]
     ij = np.argwhere(img > 0.05 * img.max())
     pick = ij[np.linspace(0, len(ij) - 1, 5).astype(int)]
     for i, j in pick:
@@ -170,14 +170,15 @@ def test_two_half_space_spots_equal_a_point_bulb():
     source, which the bulb model with a tiny radius is (away from the bulb itself)."""
     pos = [30, -20, 0]
     r = 0.05
+    centres = dict(bulb_supersample=1, halo_supersample=1, box_filter=False)  # same samples
     bulb = SingleScattering(make_spec(light={"type": "bulb", "position": pos, "radius": r}),
-                            bulb_supersample=1)
+                            **centres)
     args = (1e-3, 0.02, 0.6)
     a = (args[0] + args[1]) * r  # the bulb's light leaves its surface: cap factor E(kt r)
     cap = 2 * ((a - 1) * np.exp(a) + 1) / a**2
     b = bulb.render(*args, 1.0)[..., 0] / (np.pi * r * r * cap)
     s = sum(SingleScattering(make_spec(light={"type": "spot", "position": pos, "direction": dz,
-                                              "cutoff_deg": 90})).render(*args, 1.0)[..., 0]
+                                              "cutoff_deg": 90}), **centres).render(*args, 1.0)[..., 0]
             for dz in ([0, 0, 1], [0, 0, -1]))
     ok = b > 0
     np.testing.assert_allclose(s[ok], b[ok], rtol=2e-4)

@@ -24,7 +24,9 @@ with the light leaving its surface (not its centre): the far-field average of
 exp(-kappa_t path) over the visible cap is exp(-kappa_t d) E(kappa_t r) with
 E(a) = 2 ((a - 1) e^a + 1) / a^2.  Rays that hit the bulb see it attenuated,
 L_b exp(-kappa_t s_hit), and stop there.  Pixels near the bulb's silhouette are
-supersampled so that the direct view is integrated over the pixel footprint.
+supersampled so that the direct view is integrated over the pixel footprint;
+elsewhere the footprint average is the sample value plus the midpoint rule's
+second-order term (laplacian / 24), taken from the image itself.
 
 The spot is a point source of intensity I inside a cone; each ray's
 integration range is clipped to the (convex) cone analytically.
@@ -38,6 +40,8 @@ from ..geometry import WaterRays, pixel_grid, trace_to_water
 from ..spec import Camera, Spec
 
 _HALF_PI = 0.5 * np.pi
+HALO_FOOTPRINTS = 8.0  # the bulb's halo: pixels whose ray passes within r + 8 footprints
+HALO_SUB = 4
 
 
 def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -110,11 +114,16 @@ class SingleScattering:
         ``n`` gives n x n samples per pixel everywhere (1: pixel centres).
     bulb_supersample : int
         Samples per pixel side for pixels near the bulb's silhouette.
+    halo_supersample : int
+        Samples per pixel side in the bulb's halo (within 8 pixel footprints).
+    box_filter : bool
+        Average over each pixel's footprint (True) or return the value at the samples.
     """
 
     def __init__(self, spec: Spec, image_index: int | None = 0, *, channels: tuple[str, ...] | None = None,
                  nodes: int = 8, nodes_upper: int = 8, supersample: int = 1,
-                 bulb_supersample: int = 8):
+                 bulb_supersample: int = 8, halo_supersample: int = HALO_SUB,
+                 box_filter: bool = True):
         self.spec = spec
         use = image_index is not None and spec.images
         self.camera: Camera = spec.camera_for(image_index) if use else spec.camera
@@ -124,7 +133,8 @@ class SingleScattering:
         self.nodes, self.nodes_upper = int(nodes), int(nodes_upper)
         self._rules = {n: _gauss_legendre(n) for n in {self.nodes, self.nodes_upper}}
         self._frozen: list | None = None
-        self._build(int(supersample), int(bulb_supersample))
+        self.box_filter = box_filter
+        self._build(int(supersample), int(bulb_supersample), int(halo_supersample))
 
     # ----------------------------------------------------------------- set-up
     def _rays(self, sub: int, mask: np.ndarray | None = None):
@@ -137,22 +147,40 @@ class SingleScattering:
                               np.ravel(x), np.ravel(y))
         return rays, np.ravel(pix), np.full(np.size(pix), 1.0 / sub**2)
 
-    def _build(self, sub: int, bulb_sub: int) -> None:
+    def _build(self, sub: int, bulb_sub: int, halo_sub: int) -> None:
         c = self.light.position
-        rays, pix, wts = self._rays(sub)
-        if self.light.type == "bulb" and bulb_sub > sub:
-            # pixels whose centre ray passes near the bulb get a finer footprint integral
+        # samples per pixel side: `sub` everywhere; near the bulb's silhouette `bulb_sub`
+        # (the direct view is a discontinuity); in its halo 4 (the glow of a forward-peaked
+        # phase function curves too fast for the second-order footprint correction)
+        sub_map = np.full(self.shape, sub)
+        zone = np.zeros(self.shape, bool)
+        if self.light.type == "bulb":
             centre, _, _ = self._rays(1)
             h_c = self._closest(centre, c)[1].reshape(self.shape)
             footprint = np.linalg.norm(c - self.camera.position) / min(self.camera.fx, self.camera.fy)
-            near = h_c < self.light.radius + 2.0 * footprint
-            keep = ~near.ravel()[pix]
-            r2, p2, w2 = self._rays(bulb_sub, np.broadcast_to(near[..., None],
-                                                              (*self.shape, bulb_sub**2)))
-            rays = WaterRays(*(np.concatenate([getattr(rays, f)[keep], getattr(r2, f)])
-                               for f in ("origin", "direction", "length", "factor")))
-            pix, wts = np.concatenate([pix[keep], p2]), np.concatenate([wts[keep], w2])
+            zone = h_c < self.light.radius + HALO_FOOTPRINTS * footprint
+            sub_map[zone] = max(sub, halo_sub)
+            sub_map[h_c < self.light.radius + 2.0 * footprint] = max(sub, bulb_sub)
+        parts = []
+        for n in np.unique(sub_map):
+            sel = np.broadcast_to((sub_map == n)[..., None], (*self.shape, n * n))
+            parts.append(self._rays(int(n), sel))
+        rays = WaterRays(*(np.concatenate([getattr(p[0], f) for p in parts])
+                           for f in ("origin", "direction", "length", "factor")))
+        pix = np.concatenate([p[1] for p in parts])
+        wts = np.concatenate([p[2] for p in parts])
         live = rays.factor > 0
+        # pixels where the box filter is applied as centre value + laplacian / (24 sub^2):
+        # sampled on the regular grid, fully inside the tank's face, neighbours alike
+        regular = (sub_map == sub) & ~zone
+        full = np.bincount(pix[live], weights=wts[live], minlength=regular.size).reshape(self.shape)
+        regular &= np.isclose(full, 1.0)
+        ok = regular.copy()
+        ok[1:-1, 1:-1] &= (regular[:-2, 1:-1] & regular[2:, 1:-1] & regular[1:-1, :-2]
+                           & regular[1:-1, 2:])
+        ok[[0, -1], :] = False
+        ok[:, [0, -1]] = False
+        self._smooth, self._lap_scale = ok, 1.0 / (24.0 * sub * sub)
         self._pix, self._wts = pix[live], wts[live] * rays.factor[live]
         o, v, length = rays.origin[live], rays.direction[live], rays.length[live]
         s0, h = self._closest(WaterRays(o, v, length, rays.factor[live]), c)
@@ -295,4 +323,16 @@ class SingleScattering:
                 rad = rad + np.where(self._hit, br[k] * np.exp(-kt[k] * self._s_hit), 0.0)
             out[..., k] = np.bincount(self._pix, weights=self._wts * rad,
                                       minlength=n_pix).reshape(self.shape)
-        return out
+        return self._box_filter(out) if self.box_filter else out
+
+    def _box_filter(self, img: np.ndarray) -> np.ndarray:
+        """Pixel-footprint average from the samples: midpoint rule + its second-order term.
+
+        The composite midpoint rule with n x n samples errs by (1 / (24 n^2)) times the
+        laplacian in pixel units; the laplacian is taken from the image itself, on pixels
+        whose neighbours are regular samples (elsewhere the footprint is sampled finely).
+        """
+        lap = np.zeros_like(img)
+        lap[1:-1, 1:-1] = (img[:-2, 1:-1] + img[2:, 1:-1] + img[1:-1, :-2] + img[1:-1, 2:]
+                           - 4 * img[1:-1, 1:-1])
+        return img + np.where(self._smooth[..., None], self._lap_scale * lap, 0.0)

@@ -53,6 +53,7 @@ class Prepared:
     noise_source: str
     brightness: dict[str, float | None]
     brightness_source: str
+    brightness_rel_sd: dict[str, float | None] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
 
@@ -65,13 +66,14 @@ def _model(spec: Spec, image_index: int | None, channel: str, options: FitOption
 
 
 def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, float]]
-              ) -> dict[str, float]:
+              ) -> tuple[dict[str, float], dict[str, float]]:
     """The bulb's radiance per channel from the clear-water photo (weighted least squares
-    of the photo against the model image of a unit-radiance bulb in clear water)."""
+    of the photo against the model image of a unit-radiance bulb in clear water), and its
+    relative standard error."""
     from ..forward.single import SingleScattering
 
     unit = SingleScattering(spec, None, channels=spec.channels).render(0.0, 0.0, 0.0, 1.0)
-    out = {}
+    out, rel_sd = {}, {}
     src = spec.clear_water.paths[0]
     for k, ch in enumerate(spec.channels):
         ci = CHANNELS.index(ch)
@@ -83,11 +85,13 @@ def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, floa
         d = clear.data[..., ci][use]
         gain, read = noise[ch]
         w = 1.0 / (gain * np.maximum(d, 0) + read)
-        out[ch] = float(np.sum(w * d * m0[use]) / np.sum(w * m0[use] ** 2))
+        fisher = np.sum(w * m0[use] ** 2)
+        out[ch] = float(np.sum(w * d * m0[use]) / fisher)
         if not out[ch] > 0:
             raise InputError(f"calibration.clear_water: {src}: the bulb is not brighter than the "
                              f"background in channel {ch} (radiance estimate {out[ch]:.3g})")
-    return out
+        rel_sd[ch] = float(1.0 / np.sqrt(fisher) / out[ch])
+    return out, rel_sd
 
 
 def prepare(spec: Spec) -> Prepared:
@@ -114,9 +118,10 @@ def prepare(spec: Spec) -> Prepared:
         notes.append("noise model estimated from the data (no `noise` in the spec)")
     brightness: dict[str, float | None]
     light = spec.light
+    rel_sd: dict[str, float | None] = {c: None for c in spec.channels}
     if light.type == "bulb" and clear is not None:
-        brightness = calibrate(spec, clear, noise)
-        source = "clear-water photo"
+        brightness, rel_sd = calibrate(spec, clear, noise)
+        source = "clear-water photo (prior: normal in log brightness, calibration's error)"
     elif light.brightness is not None:
         brightness = {c: light.brightness[CHANNELS.index(c)] for c in spec.channels}
         source = "spec (light.radiance / light.intensity)"
@@ -129,7 +134,7 @@ def prepare(spec: Spec) -> Prepared:
             "no calibration.clear_water"
         notes.append(f"light brightness fitted as a free parameter ({why}): kappa_s is then only "
                      "constrained through its product with the brightness and the glow's shape")
-    return Prepared(spec, images, clear, noise, noise_source, brightness, source, notes)
+    return Prepared(spec, images, clear, noise, noise_source, brightness, source, rel_sd, notes)
 
 
 def _kt_guess(spec: Spec, obs: list[Observation], brightness: float | None) -> float:
@@ -151,7 +156,8 @@ def _kt_guess(spec: Spec, obs: list[Observation], brightness: float | None) -> f
 
 
 def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np.ndarray],
-                brightness: float | None, noise: tuple[float, float], options: FitOptions,
+                brightness: float | None, brightness_rel_sd: float | None,
+                noise: tuple[float, float], options: FitOptions,
                 checkpoint: Path | None = None, seed: int = 0) -> dict:
     """MAP and (optionally) posterior samples of one channel; returns plain arrays/dicts."""
     obs = []
@@ -159,13 +165,13 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
         model = _model(spec, i, channel, options)
         support = np.bincount(model._pix, minlength=d.size).reshape(d.shape) > 0
         obs.append(Observation(model, d, v & support, spec.images[i].concentration))
-    free = brightness is None
-    guess_b = 1.0
-    if free:
-        guess_b = float(np.max([np.percentile(d[v], 99.9) for d, v in zip(data, valid)]) / 0.5)
-    space = ParameterSpace(free_brightness=free, brightness_guess=max(guess_b, 1e-30))
-    problem = ChannelProblem(obs, space, brightness, noise, robust=options.robust)
-    kt0 = _kt_guess(spec, obs, brightness)
+    free = brightness is None or brightness_rel_sd is not None
+    guess_b = brightness if brightness is not None else float(
+        np.max([np.percentile(d[v], 99.9) for d, v in zip(data, valid)]) / 0.5)
+    space = ParameterSpace(free_brightness=free, brightness_guess=max(guess_b, 1e-30),
+                           brightness_rel_sd=brightness_rel_sd)
+    problem = ChannelProblem(obs, space, None if free else brightness, noise, robust=options.robust)
+    kt0 = _kt_guess(spec, obs, guess_b if spec.light.type == "bulb" and brightness else None)
     x0 = space.to_vector(ChannelParams(kt0, 0.5, 0.5, guess_b if free else None))
     lo, hi = space.lower.copy(), space.upper.copy()
     lo[0], hi[0] = max(lo[0], x0[0] - 3), min(hi[0], x0[0] + 3)  # global search near the guess
@@ -173,14 +179,25 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     problem.adapt(x0)
     res = find_map(problem.log_posterior, x0, lo, hi, global_evals=options.global_evals,
                    local_evals=0, seed=int(rng.integers(2**31)))
-    problem.adapt(res.x)  # quadrature tuned near the optimum, then the local search
-    res = find_map(problem.log_posterior, res.x, space.lower, space.upper, global_evals=0)
-    problem.adapt(res.x)
+    problem.adapt(res.x)  # quadrature tuned near the optimum, then local searches
+    # the albedo direction has a plateau when kappa_a << kappa_s (milk): restart the local
+    # search from several albedos and keep the best, so the MAP is not a point on the plateau
+    best = None
+    for la in (res.x[1], -2.0, 2.0, 5.0, 8.0, 11.0, 14.0):
+        start = res.x.copy()
+        start[1] = la
+        cand = find_map(problem.log_posterior, start, space.lower, space.upper, global_evals=0,
+                        local_evals=600, laplace=False)
+        if best is None or cand.log_posterior > best.log_posterior:
+            best = cand
+    problem.adapt(best.x)
+    res = find_map(problem.log_posterior, best.x, space.lower, space.upper, global_evals=0)
+    res.n_evals += best.n_evals
     out = {"channel": channel, "names": space.names, "x_map": res.x, "map_logp": res.log_posterior,
            "n_evals": res.n_evals, "laplace_cov": res.cov,
            "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
            "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
-           "free_brightness": free}
+           "free_brightness": free, "space": space}
     if options.mcmc:
         chain = run_chain(problem.log_posterior, res.x, res.cov, space.lower, space.upper, rng=rng,
                           checkpoint=checkpoint, name=f"channel_{channel}", resume=options.resume,
@@ -205,8 +222,8 @@ def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | Non
         ci = CHANNELS.index(ch)
         ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"chain_{ch}.h5"
         jobs.append((spec, ch, [im.data[..., ci] for im in prep.images],
-                     [im.valid[..., ci] for im in prep.images], prep.brightness[ch], prep.noise[ch],
-                     options, ckpt, options.seed))
+                     [im.valid[..., ci] for im in prep.images], prep.brightness[ch],
+                     prep.brightness_rel_sd.get(ch), prep.noise[ch], options, ckpt, options.seed))
     workers = options.workers or min(len(jobs), os.cpu_count() or 1)
     if workers <= 1 or len(jobs) == 1:
         return {j[1]: fit_channel(*j) for j in jobs}

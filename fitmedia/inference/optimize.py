@@ -18,7 +18,7 @@ class MapResult:
 
 def find_map(log_post: Callable[[np.ndarray], float], x0: np.ndarray, lower: np.ndarray,
              upper: np.ndarray, *, global_evals: int = 400, local_evals: int = 2000,
-             seed: int = 0) -> MapResult:
+             seed: int = 0, laplace: bool = True) -> MapResult:
     """Maximise ``log_post`` inside the box: GN_CRS2_LM from ``x0``, then LN_BOBYQA.
 
     The same function the sampler uses is maximised (lmfit's rule: one objective).
@@ -67,7 +67,7 @@ def find_map(log_post: Callable[[np.ndarray], float], x0: np.ndarray, lower: np.
     except nlopt.RoundoffLimited:
         pass
     x = best[0]
-    cov = laplace_covariance(log_post, x, lower, upper)
+    cov = laplace_covariance(log_post, x, lower, upper) if laplace else None
     return MapResult(x, float(best[1]), count[0], cov)
 
 

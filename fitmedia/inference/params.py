@@ -11,7 +11,8 @@ Per channel the sampler sees
 Priors (docs/inference.md): flat in (log kappa_t, logit albedo) inside the
 bounds, which is the same as independent log-uniform (scale-invariant) priors on
 kappa_a and kappa_s (the Jacobian of that map is 1); uniform in g on
-[G_MIN, G_MAX]; log-uniform on the brightness.  Flat vectors exist only at
+[G_MIN, G_MAX]; the brightness either normal in log around the clear-water
+calibration (with the calibration's standard error) or log-uniform.  Flat vectors exist only at
 the optimizer / sampler boundary.
 """
 
@@ -50,14 +51,21 @@ class ChannelParams:
 class ParameterSpace:
     """Maps between :class:`ChannelParams` and the flat unconstrained vector."""
 
-    def __init__(self, *, free_brightness: bool = False, brightness_guess: float = 1.0):
+    def __init__(self, *, free_brightness: bool = False, brightness_guess: float = 1.0,
+                 brightness_rel_sd: float | None = None):
+        """``free_brightness``: the brightness is a parameter; with ``brightness_rel_sd`` its
+        prior is normal in log brightness around ``brightness_guess`` (a calibration with that
+        relative standard error), else log-uniform within +-12 e-folds of the guess."""
         self.free_brightness = free_brightness
         self.names = ["log_kappa_t", "logit_albedo", "atanh_g"]
         bounds = [LOG_KT_BOUNDS, LOGIT_ALBEDO_BOUNDS, ATANH_G_BOUNDS]
+        self.log_b0 = float(np.log(brightness_guess))
+        self.b_sd = brightness_rel_sd
         if free_brightness:
-            c = float(np.log(brightness_guess))
+            c = self.log_b0
+            span = LOG_BRIGHTNESS_SPAN if brightness_rel_sd is None else 10 * brightness_rel_sd
             self.names.append("log_brightness")
-            bounds.append((c - LOG_BRIGHTNESS_SPAN, c + LOG_BRIGHTNESS_SPAN))
+            bounds.append((c - span, c + span))
         self.lower = np.array([b[0] for b in bounds])
         self.upper = np.array([b[1] for b in bounds])
 
@@ -79,7 +87,10 @@ class ParameterSpace:
         if np.any(u < self.lower) or np.any(u > self.upper) or not np.all(np.isfinite(u)):
             return -np.inf
         # uniform in g: density in atanh g is 1 - tanh^2 = sech^2
-        return float(-2.0 * np.log(np.cosh(u[2])))
+        lp = -2.0 * np.log(np.cosh(u[2]))
+        if self.free_brightness and self.b_sd is not None:
+            lp -= 0.5 * ((u[3] - self.log_b0) / self.b_sd) ** 2
+        return float(lp)
 
     def physical_samples(self, u: np.ndarray) -> dict[str, np.ndarray]:
         """Samples (..., ndim) -> dict of physical arrays (1/mm)."""

@@ -24,22 +24,20 @@ def summarise(samples: np.ndarray | None, map_value: float) -> dict:
 
 
 def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) -> dict:
-    from .params import ParameterSpace
-
     spec = prep.spec
     params = {q: {} for q in QUANTITIES}
     chans = {}
     for ch in spec.channels:
         f = fits[ch]
-        space = ParameterSpace(free_brightness=f["free_brightness"])
-        phys = space.physical_samples(f["samples"]) if "samples" in f else {}
+        phys = f["space"].physical_samples(f["samples"]) if "samples" in f else {}
         for q in QUANTITIES:
             params[q][ch] = summarise(phys.get(q), f["map"][q])
         chi2, n = f["chi2"]
         info = {"map_log_posterior": f["map_logp"], "n_evals_map": f["n_evals"],
                 "chi2_per_pixel": chi2 / max(n, 1), "n_pixels": n,
-                "brightness": prep.brightness[ch] if prep.brightness[ch] is not None
-                else f["map"].get("brightness")}
+                "brightness_calibrated": prep.brightness[ch],
+                "brightness_calibration_rel_sd": prep.brightness_rel_sd.get(ch),
+                "brightness": f["map"].get("brightness", prep.brightness[ch])}
         if "samples" in f:
             g90 = params["g"][ch]["q95"] - params["g"][ch]["q05"]
             ks = params["kappa_s"][ch]
@@ -90,9 +88,7 @@ def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results:
     samples = {}
     for ch, f in fits.items():
         if "samples" in f:
-            from .params import ParameterSpace
-
-            phys = ParameterSpace(free_brightness=f["free_brightness"]).physical_samples(f["samples"])
+            phys = f["space"].physical_samples(f["samples"])
             for q, v in phys.items():
                 samples[f"{ch}/{q}"] = v
             samples[f"{ch}/unconstrained"] = f["samples"]

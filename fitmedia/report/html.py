@@ -1,0 +1,502 @@
+"""The HTML report of a fit: one self-contained file (figures embedded as base64 PNG).
+
+:func:`write_report` reads what ``fitmedia fit SPEC --out DIR`` writes
+(``results.json``, ``samples.npz``, ``fit_images.npz``; CAPTURE_SPEC.md) and
+writes ``DIR/report.html``.  The file is written in ASCII (non-ASCII characters
+as HTML character references), so it reads the same whatever the locale.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import html
+import json
+import math
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import __version__
+from ..errors import InputError
+from ..util import atomic_write_text
+from .plots import finite_or_none as _num
+from .plots import prior_bound_flags
+
+QUANTITIES = ("kappa_a", "kappa_s", "kappa_t", "albedo", "g")
+KAPPAS = ("kappa_a", "kappa_s", "kappa_t")
+LABELS = {"kappa_a": "&kappa;<sub>a</sub> absorption", "kappa_s": "&kappa;<sub>s</sub> scattering",
+          "kappa_t": "&kappa;<sub>t</sub> extinction", "g": "g (HG anisotropy)",
+          "albedo": "albedo &kappa;<sub>s</sub>/&kappa;<sub>t</sub>"}
+G_UNCONSTRAINED = "g unconstrained: the medium hardly scatters in this channel"
+KS_ZERO = "&kappa;<sub>s</sub> consistent with zero"
+CHI2_WARN = (0.5, 2.0)  # chi2 per pixel outside this range is flagged
+
+CSS = """
+body { font-family: sans-serif; max-width: 1250px; margin: 1em auto; padding: 0 1em;
+       color: #222; line-height: 1.4; }
+h1 { font-size: 1.5em; border-bottom: 2px solid #444; }
+h2 { font-size: 1.2em; border-bottom: 1px solid #aaa; margin-top: 2em; }
+table { border-collapse: collapse; margin: 0.5em 0 1em 0; font-size: 0.92em; }
+th, td { border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: left; vertical-align: top; }
+td.num { text-align: right; font-family: monospace; white-space: nowrap; }
+th { background: #f3f3f3; } tr.chan th { background: #e8e8e8; } tr.permetre td { color: #555; }
+td:first-child { white-space: nowrap; }
+td.num .txt { white-space: normal; font-family: sans-serif; }
+.warn { background: #fff3cd; border: 1px solid #d9a400; padding: 0.4em 0.8em; margin: 0.3em 0; }
+.flag { color: #a40000; font-weight: normal; margin-left: 1em; } .bad { color: #a40000; }
+.muted { color: #666; font-size: 0.9em; }
+img { max-width: 100%; border: 1px solid #ddd; margin: 0.3em 0; }
+dl.meta { display: grid; grid-template-columns: max-content auto; gap: 0.1em 1em; }
+dl.meta dt { font-weight: bold; } dl.meta dd { margin: 0; }
+"""
+
+
+# ---------------------------------------------------------------------------------------------
+# loading
+
+
+def _require(path: Path) -> Path:
+    if not path.is_file():
+        raise InputError(f"{path}: file not found (the report needs the output of "
+                         f"`fitmedia fit SPEC --out {path.parent}`)")
+    return path
+
+
+def _load_npz(path: Path) -> dict[str, np.ndarray]:
+    _require(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise InputError(f"{path}: not a readable .npz file ({exc})") from exc
+
+
+def load_outputs(out_dir: str | Path) -> tuple[dict, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Read ``results.json``, ``samples.npz`` and ``fit_images.npz`` from ``out_dir``.
+
+    Raises
+    ------
+    InputError
+        A file is missing or unreadable (the message names it).
+    """
+    out = Path(out_dir)
+    rpath = _require(out / "results.json")
+    try:
+        results = json.loads(rpath.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{rpath}: not a readable JSON file ({exc})") from exc
+    if not isinstance(results, dict) or "parameters" not in results:
+        raise InputError(f"{rpath}: expected a fitmedia results object with 'parameters'")
+    return results, _load_npz(out / "samples.npz"), _load_npz(out / "fit_images.npz")
+
+
+# ---------------------------------------------------------------------------------------------
+# number formatting
+
+
+def format_sig(x: float | None, digits: int = 4) -> str:
+    """``x`` with ``digits`` significant digits, positional for 1e-4 <= |x| < 1e6."""
+    if x is None or not math.isfinite(x):
+        return "&mdash;"
+    if x == 0:
+        return "0"
+    e = math.floor(math.log10(abs(x)))
+    if -4 <= e < 6:
+        return f"{x:.{max(0, digits - 1 - e)}f}"
+    return f"{x:.{digits - 1}e}"
+
+
+def _decimals_near_one(x: float) -> int:
+    """Decimals that show the first two digits of 1 - x (albedo 0.99997 -> 6)."""
+    return min(12, max(4, 1 - math.floor(math.log10(abs(1.0 - x)))))
+
+
+def format_estimate(entry: dict, scale: float = 1.0) -> dict[str, str]:
+    """The table cells of one quantity of one channel.
+
+    Parameters
+    ----------
+    entry : dict
+        ``results["parameters"][quantity][channel]``: ``map`` and, when a sampler
+        ran, ``median``, ``q05``, ``q16``, ``q84``, ``q95``.
+    scale : float
+        Multiplies every value (1000 converts 1/mm to 1/m).
+
+    Returns
+    -------
+    dict
+        ``estimate`` (the median, or the MAP when no sampler ran), ``q68`` and ``q90``
+        ("lo &ndash; hi", or "&mdash;"), ``map``.  With an interval the values are given
+        to two significant digits of the 68 % interval's width (in scientific notation
+        below 1e-3 and from 1e6); where the interval spans more than a factor 10 to three
+        significant digits each.
+    """
+    v = {k: (None if _num(entry.get(k)) is None else _num(entry.get(k)) * scale)
+         for k in ("map", "median", "q05", "q16", "q84", "q95")}
+    qs = [v[k] for k in ("q05", "q16", "q84", "q95")]
+    if v["median"] is None or any(q is None for q in qs):
+        m = v["map"]
+        text = (f"{m:.{_decimals_near_one(m)}f}" if m is not None and 0.99 < m < 1.0
+                else format_sig(m))
+        return {"estimate": text, "q68": "&mdash;", "q90": "&mdash;", "map": text}
+    lo, hi = min(qs + [v["median"]]), max(qs + [v["median"]])
+    width = v["q84"] - v["q16"]
+    if lo > 0 and hi / lo > 10 or width <= 0:
+        def f(x: float | None) -> str:
+            return format_sig(x, 3)
+    elif max(abs(lo), abs(hi)) < 1e-3 or max(abs(lo), abs(hi)) >= 1e6:
+        e_width = math.floor(math.log10(width))
+
+        def f(x: float | None) -> str:  # scientific, to 2 digits of the width
+            if x is None or x == 0:
+                return format_sig(x)
+            return f"{x:.{max(1, math.floor(math.log10(abs(x))) - e_width + 1)}e}"
+    else:
+        dec = min(12, max(0, 1 - math.floor(math.log10(width))))
+        if 0.9 < v["median"] < 1.0 and hi <= 1.0:  # an albedo close to 1: show 1 - albedo
+            dec = max(dec, _decimals_near_one(v["median"]))
+
+        def f(x: float | None) -> str:
+            return "&mdash;" if x is None else f"{x:.{dec}f}"
+    return {"estimate": f(v["median"]), "q68": f"{f(v['q16'])} &ndash; {f(v['q84'])}",
+            "q90": f"{f(v['q05'])} &ndash; {f(v['q95'])}", "map": f(v["map"])}
+
+
+def _cell(x: Any, digits: int = 4) -> str:
+    """A table cell's text for a value of any JSON type."""
+    if x is None:
+        return "&mdash;"
+    if isinstance(x, bool):
+        return "yes" if x else '<span class="bad">NO</span>'
+    if isinstance(x, int):
+        return str(x)
+    if isinstance(x, float):
+        text = format_sig(x, digits)
+        if "e" in text:  # 2.000e-05 -> 2e-05
+            mant, exp = text.split("e")
+            text = mant.rstrip("0").rstrip(".") + "e" + exp
+        return text
+    if isinstance(x, (list, dict)):
+        return f'<span class="txt">{html.escape(json.dumps(x))}</span>'
+    return f'<span class="txt">{html.escape(str(x))}</span>'
+
+
+def _table(header: list[str], rows: list[list[str]], num_from: int = 1, *,
+           drop_empty: bool = False) -> str:
+    """An HTML table; cells from column ``num_from`` on are right-aligned numbers.
+
+    With ``drop_empty`` the columns from ``num_from`` on that are empty in every row
+    are left out.
+    """
+    if drop_empty and rows:
+        keep = [j for j in range(len(header))
+                if j < num_from or any(r[j] != "&mdash;" for r in rows)]
+        header = [header[j] for j in keep]
+        rows = [[r[j] for j in keep] for r in rows]
+    head = "".join(f"<th>{h}</th>" for h in header)
+    body = "".join(
+        "<tr>" + "".join(f'<td class="num">{c}</td>' if j >= num_from else f"<td>{c}</td>"
+                         for j, c in enumerate(r)) + "</tr>\n" for r in rows)
+    return f"<table><tr>{head}</tr>\n{body}</table>\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# sections
+
+
+def _channel_flags(results: dict, ch: str, samples: dict[str, np.ndarray] | None = None
+                   ) -> list[str]:
+    info = results.get("diagnostics", {}).get("channels", {}).get(ch, {})
+    flags = prior_bound_flags(samples, ch) if samples else []
+    if info.get("g_constrained") is False:
+        flags.append(G_UNCONSTRAINED)
+    if info.get("kappa_s_consistent_with_zero") is True:
+        flags.append(KS_ZERO)
+    if info.get("converged") is False:
+        flags.append("sampler not converged: intervals unreliable")
+    chi2 = _num(info.get("chi2_per_pixel"))
+    if chi2 is not None and not CHI2_WARN[0] <= chi2 <= CHI2_WARN[1]:
+        flags.append(f"&chi;&sup2;/pixel = {chi2:.3g}: the model does not match the data "
+                     "within the noise model")
+    return flags
+
+
+def _header(results: dict, rpath: Path) -> str:
+    wall = _num(results.get("wall_time_s"))
+    wall_txt = "&mdash;" if wall is None else f"{wall:.1f} s ({wall / 60:.1f} min)"
+    if results.get("date"):
+        date = html.escape(str(results["date"]))
+    else:
+        mtime = _dt.datetime.fromtimestamp(rpath.stat().st_mtime).astimezone()
+        date = (f"{mtime:%Y-%m-%d %H:%M:%S %Z} "
+                "<span class='muted'>(time results.json was written)</span>")
+    version = html.escape(str(results.get("fitmedia_version", "unknown")))
+    if version != __version__:
+        version += f" <span class='muted'>(report written by {__version__})</span>"
+    items = [
+        ("Capture", html.escape(str(results.get("name", "")))),
+        ("Spec", f"<code>{html.escape(str(results.get('spec', '')))}</code>"),
+        ("Output folder", f"<code>{html.escape(str(rpath.parent))}</code>"),
+        ("Model", html.escape(str(results.get("model", "")))),
+        ("Date of fit", date),
+        ("fitmedia version", version),
+        ("Wall time", wall_txt),
+        ("Seed", _cell(results.get("seed"))),
+        ("Channels", html.escape(" ".join(map(str, results.get("channels", []))))),
+    ]
+    meta = "".join(f"<dt>{k}</dt><dd>{v}</dd>" for k, v in items)
+    return (f"<h1>fitmedia report: {html.escape(str(results.get('name', '')))}</h1>\n"
+            f'<dl class="meta">{meta}</dl>\n')
+
+
+def _warnings(results: dict, samples: dict[str, np.ndarray]) -> str:
+    notes = results.get("notes") or []
+    lines = [f'<div class="warn"><b>Note:</b> {html.escape(str(n))}</div>' for n in notes]
+    diag = results.get("diagnostics", {})
+    if diag.get("converged") is False:
+        bad = [c for c, i in diag.get("channels", {}).items() if i.get("converged") is False]
+        lines.append('<div class="warn"><b>Warning:</b> the sampler did not converge'
+                     + (f" in channel(s) {html.escape(', '.join(bad))}" if bad else "")
+                     + "; the intervals are not reliable (see Sampler diagnostics).</div>")
+    if "converged" not in diag:
+        lines.append('<div class="warn"><b>No sampler ran</b> (MAP only, <code>--no-mcmc</code>): '
+                     "the table gives MAP values without uncertainties.</div>")
+    for ch in results.get("channels", []):
+        for flag in _channel_flags(results, ch, samples):
+            if not flag.startswith("sampler"):
+                lines.append(f'<div class="warn"><b>Channel {html.escape(ch)}:</b> {flag}</div>')
+    return "\n".join(lines)
+
+
+def _estimates(results: dict, samples: dict[str, np.ndarray]) -> str:
+    params = results.get("parameters", {})
+    chans = results.get("channels") or list(params.get("kappa_s", {}))
+    sampled = any("median" in params.get(q, {}).get(c, {}) for q in QUANTITIES for c in chans)
+    est = "Median" if sampled else "MAP"
+    header = (f"<tr><th>Quantity</th><th>Unit</th><th>{est}</th>"
+              + ("<th>68 % interval<br>(q16 &ndash; q84)</th><th>90 % interval<br>"
+                 "(q05 &ndash; q95)</th><th>MAP</th>" if sampled else "") + "</tr>\n")
+    ncol = 6 if sampled else 3
+    rows = []
+    for ch in chans:
+        flags = "".join(f'<span class="flag">{f}</span>'
+                        for f in _channel_flags(results, ch, samples))
+        rows.append(f'<tr class="chan"><th colspan="{ncol}">Channel {html.escape(ch)}{flags}'
+                    "</th></tr>\n")
+        for q in QUANTITIES:
+            entry = params.get(q, {}).get(ch)
+            if entry is None:
+                continue
+            units = [("1/mm", 1.0), ("1/m", 1000.0)] if q in KAPPAS else [("unitless", 1.0)]
+            for unit, scale in units:
+                c = format_estimate(entry, scale)
+                cls = ' class="permetre"' if scale != 1.0 else ""
+                cells = [c["estimate"]] + ([c["q68"], c["q90"], c["map"]] if sampled else [])
+                rows.append(f"<tr{cls} data-channel=\"{html.escape(ch)}\" data-quantity=\"{q}\" "
+                            f"data-unit=\"{unit}\"><td>{LABELS[q]} <code>{q}</code></td>"
+                            f"<td>{unit}</td>" + "".join(f'<td class="num">{x}</td>' for x in cells)
+                            + "</tr>\n")
+    concs = [i.get("concentration") for i in results.get("images", [])]
+    conc_txt = ", ".join(format_sig(_num(c), 3) for c in concs)
+    return (
+        "<h2>Estimates</h2>\n"
+        "<p><b>All values are of the undiluted liquid (concentration 1)</b>"
+        + (f"; the photographed dilutions had concentrations {conc_txt}" if concs else "")
+        + ". &kappa; in 1/mm and in 1/m (1/m = 1/mm &times; 1000); albedo and g are unitless. "
+        + ("Median of the posterior with its central 68 % and 90 % intervals; MAP = maximum "
+           "a posteriori." if sampled else
+           "No sampler ran: MAP (maximum a posteriori) values only, no intervals.")
+        + "</p>\n<table>" + header + "".join(rows) + "</table>\n")
+
+
+def _corner_section(results: dict, samples: dict[str, np.ndarray]) -> str:
+    from .plots import channel_corner_plots
+
+    parts = ["<h2>Posterior (corner plots)</h2>\n"]
+    for ch, uri, n, dropped in channel_corner_plots(results, samples):
+        note = (f" {dropped} of {n} samples left out (a plotted value not finite)."
+                if dropped else "")
+        parts.append(f'<h3>Channel {html.escape(ch)}</h3>\n<img alt="corner plot channel '
+                     f'{html.escape(ch)}" src="{uri}">\n<p class="muted">{n} samples. Dashed '
+                     "lines: 16, 50 and 84 % quantiles; blue lines: MAP; contours: 0.5, 1, 1.5 "
+                     f"and 2 &sigma; of a 2-d normal; axes cover the central 99.5 %.{note}</p>\n")
+    if len(parts) == 1:
+        parts.append("<p>No posterior samples (no sampler ran, <code>--no-mcmc</code>): "
+                     "no corner plots.</p>\n")
+    return "".join(parts)
+
+
+def _images_section(results: dict, images: dict[str, np.ndarray]) -> str:
+    from .plots import fit_image_plots
+
+    rows = [[str(i), "<br>".join(f"<code>{html.escape(str(p))}</code>" for p in im.get("path", [])),
+             format_sig(_num(im.get("concentration")), 4), _cell(im.get("n_saturated")),
+             _cell(im.get("n_masked"))] for i, im in enumerate(results.get("images", []))]
+    parts = ["<h2>Data, model and residuals</h2>\n",
+             _table(["#", "Path(s)", "Concentration", "Saturated pixels", "Masked pixels"], rows,
+                    num_from=2),
+             "<p>Per channel: data and model on a shared logarithmic colour scale (values below "
+             "its lower end drawn darkest); residual (data &minus; model)/&sigma; with "
+             "&sigma;&sup2; = gain&middot;model + read_var, scale fixed at &plusmn;5. Grey: pixels "
+             "not used in the fit.</p>\n"]
+    for i, uri in fit_image_plots(results, images):
+        parts.append(f'<img alt="data, model and residual of image {i}" src="{uri}">\n' if uri
+                     else f"<p class='bad'>Image {i}: fit_images.npz lacks its data, model or "
+                     "valid array.</p>\n")
+    return "".join(parts)
+
+
+_DIAG_KEYS = ("converged", "reason", "n_steps", "autocorr_time", "acceptance_fraction", "burn_in",
+              "thin", "n_samples", "chi2_per_pixel", "n_pixels", "map_log_posterior",
+              "n_evals_map", "g_constrained", "kappa_s_consistent_with_zero")
+_CALIB_KEYS = ("brightness", "brightness_calibrated", "brightness_calibration_rel_sd")
+
+
+def _diagnostics_section(results: dict) -> str:
+    diag = results.get("diagnostics", {})
+    chans = diag.get("channels", {})
+    parts = ["<h2>Sampler diagnostics</h2>\n"]
+    if "converged" in diag:
+        parts.append(_table(["Converged", "Steps", "Max. autocorrelation time [steps]",
+                             "Mean acceptance fraction"],
+                            [[_cell(diag.get("converged")), _cell(diag.get("n_steps")),
+                              _cell(diag.get("autocorr_time_max"), 3),
+                              _cell(diag.get("acceptance_fraction"), 3)]], num_from=1))
+    else:
+        parts.append("<p>No sampler ran (MAP only).</p>\n")
+    names: list[str] = []
+    for info in chans.values():
+        for n in (info.get("autocorr_time") or {}):
+            if n not in names:
+                names.append(n)
+
+    def steps_per_tau(info: dict) -> float | None:
+        taus = [t for t in (_num(x) for x in (info.get("autocorr_time") or {}).values()) if t]
+        steps = _num(info.get("n_steps"))
+        return steps / max(taus) if steps is not None and taus else None
+
+    fields: list[tuple[str, Any]] = [
+        ("Converged", lambda i: _cell(i.get("converged"))),
+        ("Reason", lambda i: _cell(i.get("reason"))),
+        ("Steps", lambda i: _cell(i.get("n_steps"))),
+    ] + [(f"&tau; <code>{html.escape(n)}</code> [steps]",
+          lambda i, n=n: _cell(_num((i.get("autocorr_time") or {}).get(n)), 3)) for n in names] + [
+        ("Chain length / max &tau;", lambda i: _cell(steps_per_tau(i), 3)),
+        ("Acceptance fraction", lambda i: _cell(_num(i.get("acceptance_fraction")), 3)),
+        ("Burn-in [steps]", lambda i: _cell(i.get("burn_in"))),
+        ("Thin [steps]", lambda i: _cell(i.get("thin"))),
+        ("Samples kept", lambda i: _cell(i.get("n_samples"))),
+        ("&chi;&sup2;/pixel at the MAP", lambda i: _cell(_num(i.get("chi2_per_pixel")), 4)),
+        ("Pixels fitted", lambda i: _cell(i.get("n_pixels"))),
+        ("MAP log posterior", lambda i: _cell(_num(i.get("map_log_posterior")), 8)),
+        ("MAP evaluations", lambda i: _cell(i.get("n_evals_map"))),
+        ("g constrained", lambda i: _cell(i.get("g_constrained"))),
+        ("&kappa;<sub>s</sub> consistent with zero", lambda i: (
+            "&mdash;" if i.get("kappa_s_consistent_with_zero") is None
+            else "yes" if i["kappa_s_consistent_with_zero"] else "no")),
+    ]
+    rows = [[label] + [get(info) for info in chans.values()] for label, get in fields]
+    if "converged" not in diag:  # MAP only: leave out the sampler's rows
+        rows = [r for r in rows if any(c != "&mdash;" for c in r[1:])]
+    parts.append("<h3>Per channel</h3>\n"
+                 + _table(["Field"] + [f"Channel {html.escape(c)}" for c in chans], rows))
+    parts.append('<p class="muted">&tau;: integrated autocorrelation time in steps, per sampled '
+                 "(unconstrained) parameter; &chi;&sup2;/pixel at the MAP (about 1 when the "
+                 "noise model holds).</p>\n")
+    extra = [[html.escape(ch), html.escape(k), _cell(v)] for ch, info in chans.items()
+             for k, v in info.items() if k not in _DIAG_KEYS + _CALIB_KEYS]
+    if extra:
+        parts.append("<h3>Other diagnostics</h3>\n" + _table(["Channel", "Field", "Value"], extra,
+                                                             num_from=2))
+    return "".join(parts)
+
+
+def _calibration_section(results: dict, samples: dict[str, np.ndarray]) -> str:
+    cal = results.get("calibration", {})
+    chans = results.get("diagnostics", {}).get("channels", {})
+    rows = []
+    for ch in results.get("channels", []):
+        info = chans.get(ch, {})
+        b = samples.get(f"{ch}/brightness")
+        post = "&mdash;"
+        if b is not None and len(b):
+            q = np.percentile(b, [16, 50, 84])
+            post = f"{format_sig(q[1])} ({format_sig(q[0])} &ndash; {format_sig(q[2])})"
+        rows.append([html.escape(ch),
+                     _cell(_num(cal.get("brightness", {}).get(ch, info.get("brightness"))), 5),
+                     _cell(_num(info.get("brightness_calibrated")), 5),
+                     _cell(_num(info.get("brightness_calibration_rel_sd")), 3), post])
+    noise = results.get("noise", {})
+    nrows = []
+    for ch, nz in noise.get("per_channel", {}).items():
+        rv = _num(nz.get("read_var"))
+        nrows.append([html.escape(ch), _cell(_num(nz.get("gain"))), _cell(rv),
+                      _cell(None if rv is None or rv < 0 else math.sqrt(rv), 3)])
+    return (
+        "<h2>Calibration and noise model</h2>\n"
+        "<p>Light brightness source: "
+        f"<b>{html.escape(str(cal.get('brightness_source', 'unknown')))}"
+        "</b>. Brightness in image units (bulb: radiance in the water; spot: radiant intensity "
+        "&times; mm&sup2;).</p>\n"
+        + _table(["Channel", "Brightness (fixed, or MAP when fitted)", "Clear-water calibration",
+                  "Calibration rel. s.d.", "Posterior median (16 &ndash; 84 %)"], rows,
+                 drop_empty=True)
+        + f"<p>Noise model: variance = gain &middot; mean + read_var (image units); source: "
+          f"<b>{html.escape(str(noise.get('source', 'unknown')))}</b>.</p>\n"
+        + _table(["Channel", "Gain [image units]", "read_var [image units&sup2;]",
+                  "Read noise &sigma; [image units]"], nrows))
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def render_report(out_dir: str | Path) -> str:
+    """The report's HTML text for the fit output in ``out_dir`` (see :func:`write_report`)."""
+    out = Path(out_dir)
+    results, samples, images = load_outputs(out)
+    now = _dt.datetime.now().astimezone()
+    body = "\n".join([
+        _header(results, out / "results.json"),
+        _warnings(results, samples),
+        _estimates(results, samples),
+        _corner_section(results, samples),
+        _images_section(results, images),
+        _diagnostics_section(results),
+        _calibration_section(results, samples),
+        f'<p class="muted">Report written {now:%Y-%m-%d %H:%M:%S %Z} by fitmedia {__version__} '
+        "from results.json, samples.npz and fit_images.npz.</p>",
+    ])
+    title = html.escape(f"fitmedia report: {results.get('name', '')}")
+    return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+            f"<title>{title}</title>\n<style>{CSS}</style>\n</head>\n<body>\n{body}\n</body>\n"
+            "</html>\n")
+
+
+def write_report(out_dir: str | Path) -> Path:
+    """Write ``out_dir/report.html`` from the fit output in ``out_dir`` and return its path.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        A folder written by ``fitmedia fit SPEC --out DIR``: ``results.json``,
+        ``samples.npz`` and ``fit_images.npz`` (CAPTURE_SPEC.md).  A MAP-only fit
+        (``--no-mcmc``, no posterior samples) gives a report without intervals and
+        corner plots.
+
+    Returns
+    -------
+    Path
+        The report, one self-contained HTML file (figures embedded as base64 PNG),
+        written atomically.
+
+    Raises
+    ------
+    InputError
+        One of the three files is missing or unreadable; the message names it.
+    """
+    text = render_report(out_dir)
+    path = Path(out_dir) / "report.html"
+    atomic_write_text(path, text.encode("ascii", "xmlcharrefreplace").decode("ascii"))
+    return path
