@@ -155,11 +155,12 @@ def format_estimate(entry: dict, scale: float = 1.0) -> dict[str, str]:
             return f"{x:.{max(1, math.floor(math.log10(abs(x))) - e_width + 1)}e}"
     else:
         dec = min(12, max(0, 1 - math.floor(math.log10(width))))
-        if 0.9 < v["median"] < 1.0 and hi <= 1.0:  # an albedo close to 1: show 1 - albedo
-            dec = max(dec, _decimals_near_one(v["median"]))
+        near_one = 0.9 < v["median"] < 1.0 and hi <= 1.0  # an albedo: show digits of 1 - x
 
         def f(x: float | None) -> str:
-            return "&mdash;" if x is None else f"{x:.{dec}f}"
+            if x is None:
+                return "&mdash;"
+            return f"{x:.{max(dec, _decimals_near_one(x)) if near_one and x < 1 else dec}f}"
     return {"estimate": f(v["median"]), "q68": f"{f(v['q16'])} &ndash; {f(v['q84'])}",
             "q90": f"{f(v['q05'])} &ndash; {f(v['q95'])}", "map": f(v["map"])}
 

@@ -98,7 +98,8 @@ def corner_axes(samples: dict[str, np.ndarray], map_values: dict[str, float | No
     a = np.asarray(samples["albedo"], float)
     a_map = map_values.get("albedo")
     if np.median(a) > 0.99 or np.median(a) > 0.5 and _spans_decades(1.0 - a):
-        axes.append(Axis(_log10(1.0 - a), None if a_map is None else _log10(1.0 - a_map),
+        r_map = None if a_map is None else _log10(1.0 - a_map, 1e-16)
+        axes.append(Axis(_log10(1.0 - a, 1e-16), r_map,
                          r"$\log_{10}(1-\mathrm{albedo})$"))
     elif np.median(a) < 0.01 or np.median(a) <= 0.5 and _spans_decades(a):
         axes.append(Axis(_log10(a), _log10(a_map), r"$\log_{10}\,\mathrm{albedo}$"))

@@ -1,0 +1,155 @@
+"""The HTML report: built from a real (tiny) fit output, it shows the table values in 1/mm
+and 1/m, a corner plot per channel, the data/model/residual images and the sampler
+diagnostics; a MAP-only fit still gives a report; missing files raise InputError."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import geometry_dict
+from fitmedia.errors import InputError
+from fitmedia.inference.fit import FitOptions
+from fitmedia.medium import Medium
+from fitmedia.pipeline import fit
+from fitmedia.report import write_report
+from fitmedia.report.html import format_estimate
+from fitmedia.spec import parse_spec
+from fitmedia.synth import synthesize
+
+IMG_TAG = re.compile(r"<img [^>]*src=\"data:image/png;base64,")
+
+
+@pytest.fixture(scope="module")
+def fit_outputs(tmp_path_factory) -> dict[str, Path]:
+    """A tiny synthetic capture fitted twice: with the sampler and MAP only (no report)."""
+    root = tmp_path_factory.mktemp("report")
+    seed = 7
+    spec = parse_spec(geometry_dict(width=40, height=30), require_images=False)
+    medium = Medium([2e-3, 4e-3, 8e-3], [1.0, 1.2, 1.5], [0.8, 0.8, 0.8])
+    spec_path = synthesize(spec, root / "synth", medium, [200.0], seed=seed, medium_name="test")
+    opts = dict(max_steps=60, n_tau=5, global_evals=100, workers=1, progress=False, seed=seed)
+    fit(spec_path, root / "mcmc", FitOptions(**opts), report=False)
+    fit(spec_path, root / "map", FitOptions(mcmc=False, **opts), report=False)
+    return {"mcmc": root / "mcmc", "map": root / "map"}
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.h5", "report.html"))
+    return dst
+
+
+def _cells(text: str, ch: str, quantity: str, unit: str) -> list[str]:
+    """The cells of the estimates table's row of one channel, quantity and unit."""
+    m = re.search(rf'<tr[^>]*data-channel="{ch}" data-quantity="{quantity}" '
+                  rf'data-unit="{re.escape(unit)}">(.*?)</tr>', text, re.S)
+    assert m, f"no table row for {ch} {quantity} {unit}"
+    return re.findall(r'<td class="num">(.*?)</td>', m.group(1))
+
+
+def test_report_with_samples(fit_outputs, tmp_path):
+    out = _copy(fit_outputs["mcmc"], tmp_path / "fit")
+    results = json.loads((out / "results.json").read_text())
+    path = write_report(out)
+    assert path == out / "report.html" and path.is_file()
+    text = path.read_text(encoding="ascii")
+    assert text.startswith("<!DOCTYPE html>") and text.rstrip().endswith("</html>")
+    # self-contained: no external assets
+    assert not re.search(r'(src|href)="(?!data:)', text)
+
+    # the median kappa_s of channel G, as formatted in the table, in 1/mm and in 1/m
+    ks = results["parameters"]["kappa_s"]["G"]
+    per_mm = format_estimate(ks)
+    per_m = format_estimate(ks, 1000.0)
+    assert float(per_mm["estimate"]) == pytest.approx(ks["median"], rel=1e-2)
+    assert float(per_m["estimate"]) == pytest.approx(1000 * ks["median"], rel=1e-2)
+    row_mm = _cells(text, "G", "kappa_s", "1/mm")
+    row_m = _cells(text, "G", "kappa_s", "1/m")
+    assert row_mm[0] == per_mm["estimate"] and row_m[0] == per_m["estimate"]
+    assert row_mm[1] == per_mm["q68"] and row_mm[2] == per_mm["q90"]
+    lo, hi = (float(x) for x in row_m[1].split("&ndash;"))
+    assert lo == pytest.approx(1000 * ks["q16"], rel=1e-2)
+    assert hi == pytest.approx(1000 * ks["q84"], rel=1e-2)
+    assert "undiluted liquid (concentration 1)" in text
+
+    # a corner plot per channel and one data/model/residual figure per image
+    n_images = len(results["images"])
+    assert len(IMG_TAG.findall(text)) == len(results["channels"]) + n_images
+    for ch in results["channels"]:
+        assert f'alt="corner plot channel {ch}"' in text
+
+    # header and diagnostics
+    diag = results["diagnostics"]
+    assert results["name"] in text and results["spec"] in text
+    assert "Sampler diagnostics" in text
+    assert ("yes" if diag["converged"] else '<span class="bad">NO</span>') in text
+    for info in diag["channels"].values():
+        for name in info["autocorr_time"]:
+            assert f"<code>{name}</code>" in text
+        assert f">{info['n_samples']}<" in text
+        assert f">{info['burn_in']}<" in text
+
+
+def test_report_flags_and_notes(fit_outputs, tmp_path):
+    out = _copy(fit_outputs["map"], tmp_path / "fit")  # MAP only: quicker, same flags
+    results = json.loads((out / "results.json").read_text())
+    results["notes"] = ["image 0: 12 pixels saturated <and masked>"]
+    results["diagnostics"]["channels"]["B"]["g_constrained"] = False
+    results["diagnostics"]["channels"]["B"]["kappa_s_consistent_with_zero"] = True
+    (out / "results.json").write_text(json.dumps(results))
+    text = write_report(out).read_text(encoding="ascii")
+    assert "image 0: 12 pixels saturated &lt;and masked&gt;" in text
+    assert "g unconstrained: the medium hardly scatters in this channel" in text
+    assert "consistent with zero" in text
+
+
+def test_report_map_only(fit_outputs, tmp_path):
+    out = _copy(fit_outputs["map"], tmp_path / "fit")
+    results = json.loads((out / "results.json").read_text())
+    assert "converged" not in results["diagnostics"]
+    text = write_report(out).read_text(encoding="ascii")
+    ks = results["parameters"]["kappa_s"]["G"]
+    assert _cells(text, "G", "kappa_s", "1/mm") == [format_estimate(ks)["estimate"]]
+    per_m = float(_cells(text, "G", "kappa_s", "1/m")[0])
+    assert per_m == pytest.approx(1000 * ks["map"], rel=1e-3)
+    assert "no corner plots" in text
+    assert len(IMG_TAG.findall(text)) == len(results["images"])  # image figures only
+    assert "No sampler ran" in text
+
+
+@pytest.mark.parametrize("missing", ["results.json", "samples.npz", "fit_images.npz"])
+def test_report_missing_file(fit_outputs, tmp_path, missing):
+    out = _copy(fit_outputs["map"], tmp_path / "fit")
+    (out / missing).unlink()
+    with pytest.raises(InputError, match=re.escape(missing)) as err:
+        write_report(out)
+    assert "file not found" in str(err.value) and "not a readable" not in str(err.value)
+    assert not (out / "report.html").exists()
+
+
+@pytest.mark.parametrize("broken", ["results.json", "fit_images.npz"])
+def test_report_broken_file(fit_outputs, tmp_path, broken):
+    out = _copy(fit_outputs["map"], tmp_path / "fit")
+    (out / broken).write_text("{not json")
+    with pytest.raises(InputError, match=re.escape(broken) + ": not a readable"):
+        write_report(out)
+
+
+def test_format_estimate():
+    # interval-limited decimals, two significant digits of the 68 % width
+    e = {"map": 15.4518, "median": 15.44213, "q05": 15.356, "q16": 15.3972, "q84": 15.4824,
+         "q95": 15.5034}
+    assert format_estimate(e)["estimate"] == "15.442"
+    assert format_estimate(e, 1000.0)["estimate"] == "15442"
+    # an interval over decades: three significant digits each
+    e = {"map": 4.1e-6, "median": 4.02e-4, "q05": 7.31e-6, "q16": 1.74e-5, "q84": 7.38e-3,
+         "q95": 0.0219}
+    assert format_estimate(e)["q68"] == "1.74e-05 &ndash; 0.00738"
+    # an albedo close to 1 shows the digits of 1 - albedo; MAP only has no interval
+    assert format_estimate({"map": 0.99999969})["estimate"] == "0.99999969"
+    assert format_estimate({"map": np.float64(13.16)})["q90"] == "&mdash;"
