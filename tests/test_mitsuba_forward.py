@@ -275,7 +275,7 @@ G_VALUES = [0.0, 0.5, 0.9, 0.95]
 FINITE_BULB = pytest.mark.xfail(
     strict=True,
     reason="the analytic model evaluates the phase function at the direction of the bulb's "
-           "centre; for g >= 0.9 the average over the bulb's disk (up to 19 deg wide at 18 mm) "
+           "centre; for g >= 0.9 the average over the bulb's disk (39 deg across at 18 mm) "
            "is 3-6 % higher within 36 mm of the bulb -- see "
            "test_mitsuba_matches_exact_finite_bulb_near_the_bulb")
 
@@ -296,11 +296,19 @@ def test_single_scattering_matches_analytic_absorbing():
     _check_pair("bulb, absorbing", "bulb", (), 0.5, INK_MILK, BULB_SPP)
 
 
-@pytest.mark.parametrize("g", G_VALUES)
-@pytest.mark.parametrize("direction", [(-1.0, 0.0, -0.3), (-0.6, 0.0, 1.0)],
-                         ids=["sideways-107deg", "towards-camera-31deg"])
+SIDEWAYS, TOWARDS = (-1.0, 0.0, -0.3), (-0.6, 0.0, 1.0)
+# The sideways beam is seen at one scattering angle (~107 deg), so with the same
+# random numbers its relative difference hardly changes with g; its two middle
+# g values (10 s each) run with the slow tests only.
+SPOT_CASES = [pytest.param(d, g, id=f"{name}-g{g}",
+                           marks=[pytest.mark.slow] if d == SIDEWAYS and g in (0.5, 0.9) else [])
+              for d, name in ((SIDEWAYS, "sideways-107deg"), (TOWARDS, "towards-camera-31deg"))
+              for g in G_VALUES]
+
+
+@pytest.mark.parametrize("direction, g", SPOT_CASES)
 def test_single_scattering_matches_analytic_spot(direction, g):
-    spp = SPOT_SPP if direction[2] < 0 else SPOT_SPP // 2
+    spp = SPOT_SPP if direction == SIDEWAYS else SPOT_SPP // 2
     _check_pair(f"spot {direction}", "spot", direction, g, DILUTE, spp, floor=1e-2)
 
 
