@@ -240,6 +240,18 @@ def _schema_check(data: Any, schema: dict, where: str, prefix: str = "") -> None
     raise SpecError(where, fpath or "(top level)", f"got {err.instance!r}: {err.message}")
 
 
+def _check_finite(data: Any, where: str, path: tuple = ()) -> None:
+    """NaN and infinity pass JSON-Schema bounds (comparisons with NaN are false): reject them."""
+    if isinstance(data, dict):
+        for k, v in data.items():
+            _check_finite(v, where, path + (k,))
+    elif isinstance(data, list):
+        for i, v in enumerate(data):
+            _check_finite(v, where, path + (i,))
+    elif isinstance(data, float) and not np.isfinite(data):
+        raise SpecError(where, _field_path(list(path)), f"got {data}: must be a finite number")
+
+
 def _camera(d: dict) -> Camera:
     return Camera(width=int(d["size"][0]), height=int(d["size"][1]), fx=float(d["fx"]),
                   fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
@@ -356,6 +368,7 @@ def parse_spec(data: Any, *, source: str = "<spec>", base: Path | None = None,
     base = Path(".") if base is None else Path(base)
     if not isinstance(data, dict):
         raise SpecError(where, "", "the spec must be a YAML mapping")
+    _check_finite(data, where)
     _schema_check(data, SCHEMA, where)
     if require_images and "images" not in data:
         raise SpecError(where, "images", "is required but missing (at least one image)")

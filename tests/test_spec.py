@@ -90,6 +90,8 @@ def _err(data, require_images=False) -> str:
     (lambda d: d["camera"].update(sise=[1, 2]), "camera", "sise"),
     (lambda d: d["tank"].update(inner_size=[300, -250, 300]), "tank.inner_size[1]", "-250"),
     (lambda d: d["tank"]["front_wall"].update(thickness=-1), "tank.front_wall.thickness", "-1"),
+    (lambda d: d["light"].update(radius=float("nan")), "light.radius", "finite"),
+    (lambda d: d["camera"]["position"].__setitem__(2, float("inf")), "camera.position[2]", "finite"),
     (lambda d: d["tank"]["front_wall"].update(ior=0.9), "tank.front_wall.ior", "0.9"),
     (lambda d: d["tank"].update(walls="white"), "tank.walls", "white"),
     (lambda d: d["medium"].update(ior=0.5), "medium.ior", "0.5"),

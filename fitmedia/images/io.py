@@ -34,9 +34,9 @@ RAW_EXT = frozenset(".dng .cr2 .cr3 .crw .nef .nrw .arw .srf .sr2 .raf .orf .rw2
 SATURATION_FRACTION = 0.999
 #: :func:`load_entry` refuses an entry with more than this fraction of unusable pixels.
 MAX_UNUSABLE_FRACTION = 0.5
-#: Float images may dip below zero by this fraction of their maximum (noise after
-#: an external dark subtraction); such values are kept, not clamped.
-NEGATIVE_TOLERANCE = 1e-3
+# Float images may hold negative values (read noise after a dark subtraction, or in
+# a frame where the light is fully attenuated): they are kept, never clamped; the
+# likelihood's variance model (gain * max(model, 0) + read_var) accounts for them.
 _MAX_BYTES = 8 * 2**30  # a header claiming more than this is taken as corrupt
 _LEVELS = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}
 # What tifffile and its codecs raise on truncated or corrupt files (found by fuzzing).
@@ -134,11 +134,6 @@ def _read_any(path: str | Path) -> np.ndarray:
             i, j = np.argwhere(bad)[0][:2]
             raise ImageError(f"{path}: {np.count_nonzero(bad)} NaN or infinite values (first at "
                              f"row {i}, column {j}); a linear image must be finite")
-        lo, hi = float(arr.min()), float(arr.max())
-        tol = NEGATIVE_TOLERANCE * max(hi, 0.0)
-        if lo < -tol:
-            raise ImageError(f"{path}: negative values down to {lo:g} (tolerance -{tol:g}, "
-                             f"{NEGATIVE_TOLERANCE:g} of the maximum); a linear image is >= 0")
     return arr
 
 
@@ -165,8 +160,7 @@ def read_image(path: str | Path) -> tuple[np.ndarray, float | None]:
     ------
     ImageError
         Missing, unreadable or truncated file; unknown extension; not 3 or 4
-        channels; NaN or infinite values; a float image with values below
-        ``-NEGATIVE_TOLERANCE * max``.
+        channels; NaN or infinite values.
     """
     arr = _read_any(path)
     nch = 1 if arr.ndim == 2 else arr.shape[2]

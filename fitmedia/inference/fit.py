@@ -79,7 +79,8 @@ def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, floa
         ci = CHANNELS.index(ch)
         m0 = unit[..., k]
         use = (m0 > 0.05 * m0.max()) & clear.valid[..., ci] if m0.max() > 0 else m0 > 0
-        if not np.any(use):
+        core = m0 > 0.9 * m0.max()  # pixels fully covered by the bulb
+        if not np.any(use) or np.mean(clear.valid[..., ci][core]) < 0.5:
             raise InputError(f"calibration.clear_water: {src}: the bulb's pixels are saturated or "
                              f"masked in channel {ch}; take a shorter exposure")
         d = clear.data[..., ci][use]
@@ -197,6 +198,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
            "n_evals": res.n_evals, "laplace_cov": res.cov,
            "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
            "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
+           "chi2_images": problem.chi2_images(res.x),
            "free_brightness": free, "space": space}
     if options.mcmc:
         chain = run_chain(problem.log_posterior, res.x, res.cov, space.lower, space.upper, rng=rng,

@@ -108,10 +108,16 @@ class ChannelProblem:
 
     __call__ = log_posterior
 
-    def chi2(self, u: np.ndarray) -> tuple[float, int]:
-        """Sum of squared standardised residuals and the number of pixels."""
-        total = 0.0
+    def chi2_images(self, u: np.ndarray) -> list[tuple[float, int]]:
+        """Per image: sum of squared standardised residuals and the number of pixels."""
+        out = []
         for o, img in zip(self.obs, self.render(u)):
             m = img.ravel()[o.flat_idx]
-            total += float(np.sum((o.values - m) ** 2 / (self.gain * np.maximum(m, 0) + self.read_var)))
-        return total, self.n_pixels
+            out.append((float(np.sum((o.values - m) ** 2 /
+                                     (self.gain * np.maximum(m, 0) + self.read_var))), len(m)))
+        return out
+
+    def chi2(self, u: np.ndarray) -> tuple[float, int]:
+        """Sum of squared standardised residuals over all images and the number of pixels."""
+        per = self.chi2_images(u)
+        return sum(c for c, _ in per), sum(n for _, n in per)

@@ -3,13 +3,16 @@ data/model images for the report."""
 
 from __future__ import annotations
 
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
 from ..util import save_npz, write_json
+
 from .fit import FitOptions, Prepared, prior_g_interval_width
+from .params import G_MAX, G_MIN, LOG_KT_BOUNDS, LOGIT_ALBEDO_BOUNDS
 
 QUANTITIES = ("kappa_a", "kappa_s", "g", "kappa_t", "albedo")
 
@@ -39,6 +42,13 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
                 "brightness_calibration_rel_sd": prep.brightness_rel_sd.get(ch),
                 "brightness": f["map"].get("brightness", prep.brightness[ch])}
         if "samples" in f:
+            u = f["samples"]
+            space = f["space"]
+            near = (u < space.lower + 0.02 * (space.upper - space.lower)) | \
+                   (u > space.upper - 0.02 * (space.upper - space.lower))
+            info["at_prior_bound"] = [n for n, frac in zip(space.names, near.mean(0)) if frac > 0.05]
+            if "brightness" in phys:
+                info["brightness_posterior"] = summarise(phys["brightness"], f["map"]["brightness"])
             g90 = params["g"][ch]["q95"] - params["g"][ch]["q05"]
             ks = params["kappa_s"][ch]
             info.update(converged=bool(f["converged"]), reason=f["reason"], n_steps=f["n_steps"],
@@ -59,8 +69,12 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
     diag["channels"] = chans
     images = []
     for i, (entry, im) in enumerate(zip(spec.images, prep.images)):
+        per = {}
+        for ch in spec.channels:
+            c2, n = fits[ch]["chi2_images"][i]
+            per[ch] = {"n_pixels_used": n, "chi2_per_pixel_map": c2 / max(n, 1)}
         images.append({"path": [str(p) for p in entry.paths], "concentration": entry.concentration,
-                       "n_saturated": im.n_saturated, "n_masked": im.n_masked})
+                       "n_saturated": im.n_saturated, "n_masked": im.n_masked, "channels": per})
     return {
         "fitmedia_spec": 1,
         "model": options.model,
@@ -69,6 +83,14 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
         "parameters": params,
         "diagnostics": diag,
         "fitmedia_version": __version__,
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "options": {k: getattr(options, k) for k in ("robust", "n_walkers", "n_tau", "max_steps",
+                                                     "global_evals", "mcmc")},
+        "priors": {"kappa_a, kappa_s": "log-uniform (flat in log kappa_t and logit albedo)",
+                   "g": f"uniform on [{G_MIN}, {G_MAX}]",
+                   "bounds": {"kappa_t": [float(np.exp(LOG_KT_BOUNDS[0])),
+                                          float(np.exp(LOG_KT_BOUNDS[1]))],
+                              "logit_albedo": list(LOGIT_ALBEDO_BOUNDS)}},
         "spec": str(spec.source),
         "name": spec.name,
         "seed": options.seed,

@@ -1,0 +1,23 @@
+# fitmedia: the two set-up commands of the README are `make demo` and `make test`.
+PY ?= python3
+
+.PHONY: install demo test test-fast bench synthetic
+
+install:
+	bash .ci/install.sh
+
+demo: install
+	fitmedia demo --out out/demo
+
+test: install
+	$(PY) -m pytest -q
+
+test-fast:
+	$(PY) -m pytest -q -m "not slow and not mitsuba"
+
+bench:
+	$(PY) bench/forward_single.py
+	$(PY) bench/forward_mitsuba.py
+
+synthetic:
+	fitmedia synth capture_specs/bulb.yaml --medium "Lowfat Milk" --ml 16 --seed 2006 --out synthetic/default
