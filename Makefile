@@ -20,4 +20,4 @@ bench:
 	$(PY) bench/forward_mitsuba.py
 
 synthetic:
-	fitmedia synth capture_specs/bulb.yaml --medium "Lowfat Milk" --ml 16 --seed 2006 --out synthetic/default
+	fitmedia synth capture_specs/bulb_120x90.yaml --medium "Lowfat Milk" --ml 16 --seed 2006 --out synthetic/default

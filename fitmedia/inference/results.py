@@ -54,6 +54,8 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
             info.update(converged=bool(f["converged"]), reason=f["reason"], n_steps=f["n_steps"],
                         autocorr_time=dict(zip(f["names"], np.asarray(f["tau"]).tolist())),
                         acceptance_fraction=f["acceptance"], burn_in=f["burn"], thin=f["thin"],
+                        ess_bulk=None if f["ess"] is None else dict(zip(f["names"], f["ess"].tolist())),
+                        rhat=None if f["rhat"] is None else dict(zip(f["names"], f["rhat"].tolist())),
                         n_samples=len(f["samples"]),
                         g_constrained=bool(g90 < 0.5 * prior_g_interval_width()),
                         kappa_s_consistent_with_zero=bool(ks["q05"] < 1e-3 * ks["q95"]))
@@ -66,6 +68,9 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
                                                 for c in spec.channels)),
                     acceptance_fraction=float(np.mean([chans[c]["acceptance_fraction"]
                                                        for c in spec.channels])))
+        if all(chans[c]["rhat"] for c in spec.channels):
+            diag.update(rhat_max=max(max(chans[c]["rhat"].values()) for c in spec.channels),
+                        ess_bulk_min=min(min(chans[c]["ess_bulk"].values()) for c in spec.channels))
     diag["channels"] = chans
     images = []
     for i, (entry, im) in enumerate(zip(spec.images, prep.images)):
@@ -118,6 +123,9 @@ def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results:
         samples[f"{ch}/map_unconstrained"] = f["x_map"]
     samples["names"] = np.array(fits[spec.channels[0]]["names"])
     save_npz(out_dir / "samples.npz", samples)
+    for ch, f in fits.items():
+        if "chain" in f:
+            write_inference_data(out_dir / f"posterior_{ch}.nc", f)
     imgs = {}
     for i, im in enumerate(prep.images):
         from ..spec import CHANNELS
@@ -129,3 +137,15 @@ def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results:
     imgs["channels"] = np.array(spec.channels)
     save_npz(out_dir / "fit_images.npz", imgs)
     write_json(out_dir / "results.json", results)
+
+
+def write_inference_data(path: Path, fit: dict) -> None:
+    """The chain of one channel (after burn-in, walkers as chains) as ArviZ InferenceData in
+    NetCDF: the unconstrained parameters and the physical quantities (1/mm)."""
+    from ..util import atomic_write
+    from .sample import to_inference_data
+
+    chain = fit["chain"]
+    extra = {q: v for q, v in fit["space"].physical_samples(chain).items()}
+    idata = to_inference_data(chain, list(fit["names"]), extra=extra)
+    atomic_write(path, lambda tmp: idata.to_netcdf(str(tmp), engine="h5netcdf"))

@@ -22,6 +22,9 @@ class ChainResult:
     burn: int
     thin: int
     log_prob_samples: np.ndarray = field(default=None, repr=False)
+    chain: np.ndarray = field(default=None, repr=False)  # (walkers, steps after burn-in, ndim)
+    ess: np.ndarray | None = None  # bulk effective sample size per parameter (ArviZ)
+    rhat: np.ndarray | None = None  # rank-normalised split R-hat per parameter, walkers as chains
 
 
 def initial_ball(x_map: np.ndarray, cov: np.ndarray | None, lower: np.ndarray, upper: np.ndarray,
@@ -43,8 +46,9 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
               check_every: int = 100, progress: bool = True, label: str = "") -> ChainResult:
     """Run emcee until the chain is ``n_tau`` autocorrelation times long.
 
-    Converged means: steps >= n_tau * max(tau) and the tau estimate changed by
-    less than 5 % since the previous check.  With ``resume`` and an existing
+    Converged means: steps >= n_tau * max(tau), the tau estimate changed by less
+    than 5 % since the previous check, the split R-hat across walker groups is
+    <= 1.01 and the bulk ESS >= 400 (ArviZ).  With ``resume`` and an existing
     checkpoint, sampling continues from its last state (no steps repeated).
     """
     import emcee
@@ -86,8 +90,16 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
             need = n_tau * np.max(tau)
             bar.set_postfix_str(f"tau={np.max(tau):.0f}, need {need:.0f}")
             if it >= need and np.all(np.abs(old_tau - tau) / tau < 0.05):
-                converged, reason = True, f"chain {it} steps >= {n_tau:g} x tau_max {np.max(tau):.1f}"
-                break
+                burn_now = int(min(3 * np.max(tau), it // 2))
+                ess, rhat = arviz_diagnostics(np.swapaxes(sampler.get_chain(discard=burn_now), 0, 1))
+                if ess is None or (np.max(rhat) <= RHAT_MAX and np.min(ess) >= ESS_MIN):
+                    converged = True
+                    reason = f"chain {it} steps >= {n_tau:g} x tau_max {np.max(tau):.1f}"
+                    if ess is not None:
+                        reason += f"; split R-hat {np.max(rhat):.3f}, bulk ESS {np.min(ess):.0f}"
+                    break
+                reason = (f"step cap {max_steps} reached: split R-hat {np.max(rhat):.3f} "
+                          f"(need <= {RHAT_MAX}) or bulk ESS {np.min(ess):.0f} (need >= {ESS_MIN})")
             old_tau = tau
     finally:
         bar.close()
@@ -101,8 +113,57 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     thin = max(1, int(tmax / 2))
     samples = sampler.get_chain(discard=burn, thin=thin, flat=True)
     logp = sampler.get_log_prob(discard=burn, thin=thin, flat=True)
+    chain = np.swapaxes(sampler.get_chain(discard=burn), 0, 1)
+    ess, rhat = arviz_diagnostics(chain)
     return ChainResult(samples, n_steps, np.asarray(tau), float(np.mean(sampler.acceptance_fraction)),
-                       converged, reason, burn, thin, logp)
+                       converged, reason, burn, thin, logp, chain, ess, rhat)
+
+
+RHAT_MAX = 1.01  # Vehtari et al. (2021)
+ESS_MIN = 400
+
+
+RHAT_GROUPS = 4
+
+
+def walker_groups(chain: np.ndarray, n_groups: int = RHAT_GROUPS) -> np.ndarray:
+    """Pool the walkers into ``n_groups`` groups: (walkers, steps, ndim) -> (groups, steps *
+    walkers_per_group, ndim), interleaved step by step so each group's halves stay in time order."""
+    w, n, d = chain.shape
+    k = w // n_groups
+    c = chain[: k * n_groups].reshape(n_groups, k, n, d)
+    return np.swapaxes(c, 1, 2).reshape(n_groups, n * k, d)
+
+
+def arviz_diagnostics(chain: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Bulk ESS per parameter (ArviZ, walkers as chains) and rank-normalised split R-hat
+    across walker groups (the walkers of an ensemble are individually short chains; pooled in
+    groups the split R-hat measures whether parts of the ensemble disagree).  ``chain`` has
+    shape (walkers, steps, ndim); None when it is too short."""
+    if chain.shape[1] < 8 or chain.shape[0] < 2 * RHAT_GROUPS:
+        return None, None
+    import arviz as az
+
+    names = [f"p{i}" for i in range(chain.shape[2])]
+    ess = az.ess(to_inference_data(chain, names), method="bulk")
+    rhat = az.rhat(to_inference_data(walker_groups(chain), names))
+    return (np.array([float(ess[n]) for n in names]), np.array([float(rhat[n]) for n in names]))
+
+
+def to_inference_data(chain: np.ndarray, names: list[str], *, log_prob: np.ndarray | None = None,
+                      extra: dict[str, np.ndarray] | None = None):
+    """ArviZ InferenceData with walkers as chains; ``extra`` adds derived variables of the
+    same (walkers, steps) shape."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)  # arviz's announcement of its 1.0 API
+        import arviz as az
+
+    post = {n: chain[..., i] for i, n in enumerate(names)}
+    post.update(extra or {})
+    stats = {"lp": log_prob} if log_prob is not None else None
+    return az.from_dict(posterior=post, sample_stats=stats)
 
 
 def _has_chain(backend) -> bool:
