@@ -212,7 +212,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
            "free_brightness": free, "space": space}
     if options.mcmc:
         chain = run_chain(problem.log_posterior, res.x, res.cov, space.lower, space.upper, rng=rng,
-                          checkpoint=checkpoint, name=f"channel_{channel}", resume=options.resume,
+                          checkpoint=checkpoint, resume=options.resume,
                           n_walkers=options.n_walkers, n_tau=options.n_tau,
                           max_steps=options.max_steps, progress=options.progress, label=channel)
         out.update(samples=chain.samples, log_prob=chain.log_prob_samples, n_steps=chain.n_steps,
@@ -233,7 +233,7 @@ def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | Non
     jobs = []
     for ch in spec.channels:
         ci = CHANNELS.index(ch)
-        ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"chain_{ch}.h5"
+        ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"checkpoint_{ch}.npz"
         jobs.append((spec, ch, [im.data[..., ci] for im in prep.images],
                      [im.valid[..., ci] for im in prep.images], prep.brightness[ch],
                      prep.brightness_rel_sd.get(ch), prep.noise[ch], options, ckpt, options.seed))

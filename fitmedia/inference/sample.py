@@ -41,7 +41,7 @@ def initial_ball(x_map: np.ndarray, cov: np.ndarray | None, lower: np.ndarray, u
 
 def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: np.ndarray | None,
               lower: np.ndarray, upper: np.ndarray, *, rng: np.random.Generator,
-              checkpoint: Path | None = None, name: str = "chain", resume: bool = False,
+              checkpoint: Path | None = None, resume: bool = False,
               n_walkers: int | None = None, n_tau: float = 50.0, max_steps: int = 20000,
               check_every: int = 100, progress: bool = True, label: str = "") -> ChainResult:
     """Run emcee until the chain is ``n_tau`` autocorrelation times long.
@@ -56,24 +56,19 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
 
     ndim = len(x_map)
     n_walkers = n_walkers or max(4 * ndim, 16)
-    backend = None
-    start = None
-    if checkpoint is not None:
-        backend = emcee.backends.HDFBackend(str(checkpoint), name=name)
-        if resume and checkpoint.exists() and _has_chain(backend):
-            n_walkers = backend.shape[0]
-            start = None  # emcee continues from the stored last state
-        else:
-            backend.reset(n_walkers, ndim)
-    if checkpoint is None or not (resume and _has_chain(backend)):
+    backend = emcee.backends.Backend()
+    restored = load_checkpoint(checkpoint, backend) if (resume and checkpoint is not None) else None
+    if restored is None:
+        backend.reset(n_walkers, ndim)
         start = initial_ball(x_map, cov, lower, upper, n_walkers, rng)
+    else:
+        n_walkers, start = backend.nwalkers, restored
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
     sampler = emcee.EnsembleSampler(n_walkers, ndim, log_prob, moves=moves, backend=backend)
-    # emcee draws from a numpy RandomState; seed it from our Generator (explicit, reproducible)
+    # emcee draws from a numpy RandomState; seed it from our Generator (explicit, reproducible);
+    # a resumed chain continues with the random state stored in its checkpoint
     sampler._random = np.random.RandomState(int(rng.integers(2**31 - 1)))
     done = sampler.iteration
-    if start is None:
-        start = sampler.get_last_sample()
     old_tau = np.inf
     converged, reason = False, f"step cap {max_steps} reached before {n_tau:g} autocorrelation times"
     tau = np.full(ndim, np.nan)
@@ -86,6 +81,8 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
             it = sampler.iteration
             if it % check_every:
                 continue
+            if checkpoint is not None:
+                save_checkpoint(checkpoint, backend)
             tau = sampler.get_autocorr_time(tol=0)
             need = n_tau * np.max(tau)
             bar.set_postfix_str(f"tau={np.max(tau):.0f}, need {need:.0f}")
@@ -103,6 +100,8 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
             old_tau = tau
     finally:
         bar.close()
+    if checkpoint is not None:
+        save_checkpoint(checkpoint, backend)
     n_steps = sampler.iteration
     if n_steps >= 2 * check_every and not np.all(np.isfinite(tau)):
         tau = sampler.get_autocorr_time(tol=0)
@@ -166,8 +165,40 @@ def to_inference_data(chain: np.ndarray, names: list[str], *, log_prob: np.ndarr
     return az.from_dict(posterior=post, sample_stats=stats)
 
 
-def _has_chain(backend) -> bool:
+def save_checkpoint(path: Path, backend) -> None:
+    """The chain so far and the sampler's random state, written atomically (a kill -9 leaves
+    the previous checkpoint intact)."""
+    from ..util import save_npz
+
+    it = backend.iteration
+    name, keys, pos, has_gauss, gauss = backend.random_state
+    save_npz(path, {"chain": backend.chain[:it], "log_prob": backend.log_prob[:it],
+                    "accepted": backend.accepted, "iteration": np.array(it),
+                    "rs_name": np.array(name), "rs_keys": keys, "rs_pos": np.array(pos),
+                    "rs_has_gauss": np.array(has_gauss), "rs_gauss": np.array(gauss)})
+
+
+def load_checkpoint(path: Path, backend):
+    """Fill an emcee in-memory backend from a checkpoint; returns the State to continue from,
+    or None when there is no usable checkpoint."""
+    import emcee
+
+    from ..errors import InputError
+
+    if not Path(path).exists():
+        return None
     try:
-        return backend.iteration > 0
-    except (OSError, KeyError, AttributeError):
-        return False
+        with np.load(path) as z:
+            chain, lp, acc = z["chain"], z["log_prob"], z["accepted"]
+            rs = (str(z["rs_name"]), z["rs_keys"], int(z["rs_pos"]), int(z["rs_has_gauss"]),
+                  float(z["rs_gauss"]))
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(f"{path}: checkpoint unreadable ({exc}); remove it to start afresh") from None
+    if len(chain) == 0:
+        return None
+    backend.reset(chain.shape[1], chain.shape[2])
+    backend.chain, backend.log_prob = chain.copy(), lp.copy()
+    backend.accepted = acc.copy()
+    backend.iteration = len(chain)
+    backend.random_state = rs
+    return emcee.State(chain[-1], log_prob=lp[-1], random_state=rs)
