@@ -272,16 +272,7 @@ def _check_pair(name, light, direction, g, medium, spp, *, h_min=GLOW_RADII * 6.
 BULB_SPP = 2048
 SPOT_SPP = 1 << 16
 G_VALUES = [0.0, 0.5, 0.9, 0.95]
-FINITE_BULB = pytest.mark.xfail(
-    strict=True,
-    reason="the analytic model evaluates the phase function at the direction of the bulb's "
-           "centre; for g >= 0.9 the average over the bulb's disk (39 deg across at 18 mm) "
-           "is 3-6 % higher within 36 mm of the bulb -- see "
-           "test_mitsuba_matches_exact_finite_bulb_near_the_bulb")
-
-
-@pytest.mark.parametrize("g", [0.0, 0.5, pytest.param(0.9, marks=FINITE_BULB),
-                               pytest.param(0.95, marks=FINITE_BULB)])
+@pytest.mark.parametrize("g", [0.0, 0.5, 0.9, 0.95])
 def test_single_scattering_matches_analytic_bulb(g):
     _check_pair("bulb, milk", "bulb", (), g, MILK, BULB_SPP)
 
