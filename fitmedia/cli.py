@@ -69,6 +69,7 @@ def cmd_fit(a) -> int:
     from .pipeline import fit
 
     opts = FitOptions(model=a.model, seed=a.seed, mcmc=not a.no_mcmc, robust=a.robust,
+                      background=a.background,
                       n_tau=a.n_tau, max_steps=a.max_steps, workers=a.workers, resume=a.resume,
                       progress=not a.quiet)
     res = fit(a.spec, a.out, opts, report=not a.no_report)
@@ -156,6 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--no-mcmc", action="store_true", help="MAP only, no posterior sampling")
     f.add_argument("--no-report", action="store_true")
     f.add_argument("--robust", action="store_true", help="Student-t likelihood (outliers)")
+    f.add_argument("--background", action="store_true",
+                   help="fit an additive background offset per channel (normal prior)")
     f.add_argument("--n-tau", type=_finite, default=50.0, help="chain length in autocorr. times")
     f.add_argument("--max-steps", type=_positive_int, default=20000)
     f.add_argument("--workers", type=_positive_int, default=None)

@@ -108,7 +108,24 @@ SCHEMA = {
             },
         },
         "medium": {"type": "object", "additionalProperties": False, "required": ["ior"],
-                   "properties": {"ior": {"type": "number", "minimum": 1}}},
+                   "properties": {"ior": {"type": "number", "minimum": 1},
+                                  "water_kappa_a": {"oneOf": [
+                                      {"type": "number", "minimum": 0},
+                                      {"type": "array", "items": {"type": "number", "minimum": 0},
+                                       "minItems": 1, "maxItems": 3}]}}},
+        "priors": {
+            "type": "object", "additionalProperties": False,
+            "properties": {
+                "kappa_t": {"type": "array", "minItems": 2, "maxItems": 2,
+                            "items": {"type": "number", "exclusiveMinimum": 0}},
+                "albedo": {"type": "array", "minItems": 2, "maxItems": 2,
+                           "items": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1}},
+                "g": {"type": "array", "minItems": 2, "maxItems": 2,
+                      "items": {"type": "number", "exclusiveMinimum": -1, "exclusiveMaximum": 1}},
+                "brightness_rel_sd": {"type": "number", "exclusiveMinimum": 0},
+                "background_sd": {"type": "number", "exclusiveMinimum": 0},
+            },
+        },
         "camera": CAMERA_SCHEMA,
         "light": LIGHT_SCHEMA,
         "images": {"type": "array", "minItems": 1, "items": IMAGE_SCHEMA},
@@ -197,6 +214,8 @@ class Spec:
     clear_water: ImageEntry | None = None
     noise: tuple[float, float] | None = None
     channels: tuple[str, ...] = CHANNELS
+    water_kappa_a: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    priors: dict = field(default_factory=dict)
     raw: dict = field(default_factory=dict, repr=False, compare=False)
 
     def camera_for(self, i: int) -> Camera:
@@ -388,10 +407,17 @@ def parse_spec(data: Any, *, source: str = "<spec>", base: Path | None = None,
         noise = (float(data["noise"]["gain"]), float(data["noise"]["read_var"]))
         if noise[0] == 0 and noise[1] == 0:
             raise SpecError(where, "noise", "gain and read_var are both 0: the variance would be 0")
+    priors = dict(data.get("priors", {}))
+    for key in ("kappa_t", "albedo", "g"):
+        if key in priors and not priors[key][0] < priors[key][1]:
+            raise SpecError(where, f"priors.{key}", f"got {priors[key]}: need [low, high] with low < high")
+    water = data["medium"].get("water_kappa_a", 0.0)
     spec = Spec(source=source, name=str(data.get("name", Path(source).stem)), tank=tank,
                 medium_ior=float(data["medium"]["ior"]), camera=_camera(data["camera"]),
                 light=_light(data["light"], where, "light"), images=images, clear_water=cw,
-                noise=noise, channels=channels, raw=copy.deepcopy(data))
+                noise=noise, channels=channels,
+                water_kappa_a=_channel_values(water, CHANNELS, where, "medium.water_kappa_a"),
+                priors=priors, raw=copy.deepcopy(data))
     _check_geometry(spec, where)
     return spec
 

@@ -10,10 +10,8 @@ from fitmedia.medium import medium_by_name
 from fitmedia.validate import coverage_table, round_trip
 from conftest import make_spec
 
-GRID = [("Lowfat Milk", 8), ("Lowfat Milk", 240), ("Regular Milk", 16), ("Regular Milk", 240),
-        ("Espresso", 8), ("Espresso", 120), ("White Grapefruit Juice", 40),
-        ("White Grapefruit Juice", 240), ("Head & Shoulders Shampoo", 8),
-        ("Head & Shoulders Shampoo", 240)]
+GRID = [("Lowfat Milk", 8), ("Regular Milk", 240), ("Espresso", 8), ("Espresso", 120),
+        ("White Grapefruit Juice", 40), ("Head & Shoulders Shampoo", 240)]
 
 
 @pytest.mark.slow

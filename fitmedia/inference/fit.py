@@ -37,6 +37,7 @@ class FitOptions:
     max_steps: int = 20000
     n_walkers: int | None = None
     global_evals: int = 400
+    background: bool = False  # fit an additive background offset per channel (nuisance)
     workers: int | None = None
     resume: bool = False
     progress: bool = True
@@ -169,11 +170,20 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     free = brightness is None or brightness_rel_sd is not None
     guess_b = brightness if brightness is not None else float(
         np.max([np.percentile(d[v], 99.9) for d, v in zip(data, valid)]) / 0.5)
+    pri = spec.priors
+    if brightness_rel_sd is not None and "brightness_rel_sd" in pri:
+        brightness_rel_sd = float(pri["brightness_rel_sd"])
+    bg_sd = None
+    if options.background or "background_sd" in pri:
+        bg_sd = float(pri.get("background_sd", 3.0 * np.sqrt(noise[1]) + 1e-12))
     space = ParameterSpace(free_brightness=free, brightness_guess=max(guess_b, 1e-30),
-                           brightness_rel_sd=brightness_rel_sd)
-    problem = ChannelProblem(obs, space, None if free else brightness, noise, robust=options.robust)
+                           brightness_rel_sd=brightness_rel_sd, background_sd=bg_sd, priors=pri)
+    problem = ChannelProblem(obs, space, None if free else brightness, noise, robust=options.robust,
+                             water_kappa_a=spec.water_kappa_a[CHANNELS.index(channel)])
     kt0 = _kt_guess(spec, obs, guess_b if spec.light.type == "bulb" and brightness else None)
     x0 = space.to_vector(ChannelParams(kt0, 0.5, 0.5, guess_b if free else None))
+    if not space.lower[0] <= np.log(kt0) <= space.upper[0]:
+        x0[0] = 0.5 * (space.lower[0] + space.upper[0])
     lo, hi = space.lower.copy(), space.upper.copy()
     lo[0], hi[0] = max(lo[0], x0[0] - 3), min(hi[0], x0[0] + 3)  # global search near the guess
     rng = np.random.default_rng([seed, CHANNELS.index(channel)])
@@ -188,15 +198,16 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     kt_hi = 3.0 * max(np.exp(res.x[0]), kt0)
     problem.adapt(space.to_vector(ChannelParams(kt_hi, 0.5, 0.97, guess_b if free else None)))
     starts = [res.x]
-    for g0 in (0.5, 0.85, 0.95):
-        for la in (0.0, 4.0, 10.0):
+    for g0 in (0.6, 0.9):
+        for la in (0.0, 6.0):
             x = x0.copy()
-            x[1], x[2] = la, np.arctanh(g0)
+            x[1], x[2] = np.clip(la, space.lower[1], space.upper[1]), np.clip(
+                np.arctanh(g0), space.lower[2], space.upper[2])
             starts.append(x)
     best, n_evals = None, res.n_evals
-    for start in starts:
+    for start in starts:  # loose tolerance: only the basin matters here; polished below
         cand = find_map(problem.log_posterior, start, space.lower, space.upper, global_evals=0,
-                        local_evals=800, laplace=False, step=0.3)
+                        local_evals=500, laplace=False, step=0.3, tol=1e-4)
         n_evals += cand.n_evals
         if best is None or cand.log_posterior > best.log_posterior:
             best = cand
@@ -245,5 +256,6 @@ def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | Non
     return {r["channel"]: r for r in results}
 
 
-def prior_g_interval_width() -> float:
-    return 0.9 * (G_MAX - G_MIN)
+def prior_g_interval_width(space: ParameterSpace | None = None) -> float:
+    lo, hi = space.g_range if space is not None else (G_MIN, G_MAX)
+    return 0.9 * (hi - lo)

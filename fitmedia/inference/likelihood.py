@@ -53,10 +53,13 @@ class ChannelProblem:
     noise : (gain, read_var)
     robust : bool
         Student-t (nu = 4) instead of Gaussian residuals.
+    water_kappa_a : float
+        Absorption of the clear water itself (1/mm), added at every concentration.
     """
 
     def __init__(self, observations: list[Observation], space: ParameterSpace,
-                 brightness: float | None, noise: tuple[float, float], *, robust: bool = False):
+                 brightness: float | None, noise: tuple[float, float], *, robust: bool = False,
+                 water_kappa_a: float = 0.0):
         if brightness is None and not space.free_brightness:
             raise ValueError("brightness must be given or free")
         self.obs = observations
@@ -64,6 +67,7 @@ class ChannelProblem:
         self.brightness = brightness
         self.gain, self.read_var = noise
         self.robust = robust
+        self.water_kappa_a = float(water_kappa_a)  # clear water's own absorption, 1/mm (fixed)
         self.n_pixels = int(sum(len(o.values) for o in observations))
 
     def adapt(self, u: np.ndarray) -> None:
@@ -75,13 +79,14 @@ class ChannelProblem:
         for o in self.obs:
             freeze = getattr(o.model, "freeze_nodes", None)
             if freeze is not None:
-                freeze(o.concentration * p.kappa_t, p.g)
+                freeze(o.concentration * p.kappa_t + self.water_kappa_a, p.g)
 
     def render(self, u: np.ndarray) -> list[np.ndarray]:
         """Model images (H, W) for the parameter vector ``u``."""
         p = self.space.to_params(u)
         b = p.brightness if self.space.free_brightness else self.brightness
-        return [o.model.render(o.concentration * p.kappa_a, o.concentration * p.kappa_s, p.g, b)[..., 0]
+        return [o.model.render(o.concentration * p.kappa_a + self.water_kappa_a,
+                               o.concentration * p.kappa_s, p.g, b)[..., 0] + p.background
                 for o in self.obs]
 
     def log_likelihood(self, u: np.ndarray) -> float:

@@ -38,6 +38,7 @@ class ChannelParams:
     albedo: float
     g: float
     brightness: float | None = None
+    background: float = 0.0  # additive offset, image units
 
     @property
     def kappa_s(self) -> float:
@@ -52,13 +53,24 @@ class ParameterSpace:
     """Maps between :class:`ChannelParams` and the flat unconstrained vector."""
 
     def __init__(self, *, free_brightness: bool = False, brightness_guess: float = 1.0,
-                 brightness_rel_sd: float | None = None):
+                 brightness_rel_sd: float | None = None, background_sd: float | None = None,
+                 priors: dict | None = None):
         """``free_brightness``: the brightness is a parameter; with ``brightness_rel_sd`` its
         prior is normal in log brightness around ``brightness_guess`` (a calibration with that
-        relative standard error), else log-uniform within +-12 e-folds of the guess."""
+        relative standard error), else log-uniform within +-12 e-folds of the guess.
+        ``background_sd``: add a background offset (image units) with a normal prior of that
+        standard deviation.  ``priors``: the spec's `priors` (ranges of kappa_t in 1/mm for the
+        undiluted liquid, of the albedo and of g) replacing the default bounds."""
+        priors = priors or {}
         self.free_brightness = free_brightness
         self.names = ["log_kappa_t", "logit_albedo", "atanh_g"]
-        bounds = [LOG_KT_BOUNDS, LOGIT_ALBEDO_BOUNDS, ATANH_G_BOUNDS]
+        kt = priors.get("kappa_t")
+        alb = priors.get("albedo")
+        g = priors.get("g")
+        self.g_range = (float(g[0]), float(g[1])) if g else (G_MIN, G_MAX)
+        bounds = [(np.log(kt[0]), np.log(kt[1])) if kt else LOG_KT_BOUNDS,
+                  (float(logit(alb[0])), float(logit(alb[1]))) if alb else LOGIT_ALBEDO_BOUNDS,
+                  (float(np.arctanh(self.g_range[0])), float(np.arctanh(self.g_range[1])))]
         self.log_b0 = float(np.log(brightness_guess))
         self.b_sd = brightness_rel_sd
         if free_brightness:
@@ -66,6 +78,10 @@ class ParameterSpace:
             span = LOG_BRIGHTNESS_SPAN if brightness_rel_sd is None else 10 * brightness_rel_sd
             self.names.append("log_brightness")
             bounds.append((c - span, c + span))
+        self.background_sd = background_sd
+        if background_sd is not None:
+            self.names.append("background")
+            bounds.append((-10 * background_sd, 10 * background_sd))
         self.lower = np.array([b[0] for b in bounds])
         self.upper = np.array([b[1] for b in bounds])
 
@@ -75,12 +91,15 @@ class ParameterSpace:
 
     def to_params(self, u: np.ndarray) -> ChannelParams:
         b = float(np.exp(u[3])) if self.free_brightness else None
-        return ChannelParams(float(np.exp(u[0])), float(expit(u[1])), float(np.tanh(u[2])), b)
+        bg = float(u[-1]) if self.background_sd is not None else 0.0
+        return ChannelParams(float(np.exp(u[0])), float(expit(u[1])), float(np.tanh(u[2])), b, bg)
 
     def to_vector(self, p: ChannelParams) -> np.ndarray:
         u = [np.log(p.kappa_t), logit(np.clip(p.albedo, 1e-12, 1 - 1e-12)), np.arctanh(p.g)]
         if self.free_brightness:
             u.append(np.log(p.brightness))
+        if self.background_sd is not None:
+            u.append(p.background)
         return np.clip(np.array(u, float), self.lower, self.upper)
 
     def log_prior(self, u: np.ndarray) -> float:
@@ -90,6 +109,8 @@ class ParameterSpace:
         lp = -2.0 * np.log(np.cosh(u[2]))
         if self.free_brightness and self.b_sd is not None:
             lp -= 0.5 * ((u[3] - self.log_b0) / self.b_sd) ** 2
+        if self.background_sd is not None:
+            lp -= 0.5 * (u[-1] / self.background_sd) ** 2
         return float(lp)
 
     def physical_samples(self, u: np.ndarray) -> dict[str, np.ndarray]:
@@ -100,4 +121,6 @@ class ParameterSpace:
                "kappa_s": kt * alb, "kappa_a": kt * expit(-u[..., 1])}
         if self.free_brightness:
             out["brightness"] = np.exp(u[..., 3])
+        if self.background_sd is not None:
+            out["background"] = u[..., -1]
         return out

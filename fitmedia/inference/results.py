@@ -12,7 +12,6 @@ from .. import __version__
 from ..util import save_npz, write_json
 
 from .fit import FitOptions, Prepared, prior_g_interval_width
-from .params import G_MAX, G_MIN, LOG_KT_BOUNDS, LOGIT_ALBEDO_BOUNDS
 
 QUANTITIES = ("kappa_a", "kappa_s", "g", "kappa_t", "albedo")
 
@@ -57,7 +56,7 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
                         ess_bulk=None if f["ess"] is None else dict(zip(f["names"], f["ess"].tolist())),
                         rhat=None if f["rhat"] is None else dict(zip(f["names"], f["rhat"].tolist())),
                         n_samples=len(f["samples"]),
-                        g_constrained=bool(g90 < 0.5 * prior_g_interval_width()),
+                        g_constrained=bool(g90 < 0.5 * prior_g_interval_width(f["space"])),
                         kappa_s_consistent_with_zero=bool(ks["q05"] < 1e-3 * ks["q95"]))
         chans[ch] = info
     diag: dict = {}
@@ -92,10 +91,10 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
         "options": {k: getattr(options, k) for k in ("robust", "n_walkers", "n_tau", "max_steps",
                                                      "global_evals", "mcmc")},
         "priors": {"kappa_a, kappa_s": "log-uniform (flat in log kappa_t and logit albedo)",
-                   "g": f"uniform on [{G_MIN}, {G_MAX}]",
-                   "bounds": {"kappa_t": [float(np.exp(LOG_KT_BOUNDS[0])),
-                                          float(np.exp(LOG_KT_BOUNDS[1]))],
-                              "logit_albedo": list(LOGIT_ALBEDO_BOUNDS)}},
+                   "g": "uniform", "spec_overrides": spec.priors,
+                   "bounds": {n: [lo, hi] for n, lo, hi in zip(
+                       fits[spec.channels[0]]["names"], fits[spec.channels[0]]["space"].lower.tolist(),
+                       fits[spec.channels[0]]["space"].upper.tolist()) if n != "log_brightness"}},
         "spec": str(spec.source),
         "name": spec.name,
         "seed": options.seed,
