@@ -411,3 +411,16 @@ def test_frozen_nodes_reproduce_the_adaptive_render():
     adaptive = model.render(*near)
     sig = adaptive > 1e-3 * adaptive.max(axis=(0, 1))
     assert np.max(np.abs(frozen[sig] / adaptive[sig] - 1)) < 1e-3
+
+
+@pytest.mark.parametrize("kt", [0.3, 0.6, 5.0, 50.0, 500.0])
+def test_dense_media_give_finite_images_without_warnings(kt):
+    """Any kappa_t the optimizer may try gives a finite image (warnings are errors here), and
+    the glow falls as kappa_t grows (attenuation)."""
+    spec = make_spec(width=40, height=30)
+    model = SingleScattering(spec)
+    img = model.render(kt * 0.2, kt * 0.8, 0.9, 1.0)
+    assert np.all(np.isfinite(img))
+    thinner = model.render(kt * 0.1, kt * 0.4, 0.9, 1.0)
+    direct = model.render(0.0, 0.0, 0.9, 1.0) > 0
+    assert img[~direct].sum() <= thinner[~direct].sum()

@@ -184,6 +184,12 @@ def _rho_y(rho):
                                                1.2 + 0.6 * (rho - (1.0 - _ETA)) / _ETA))
 
 
+#: Largest kappa_t r for the cap table (its attenuation is a polynomial in a); beyond it the
+#: phase function is taken in the direction of the bulb's centre (far-field treatment).
+CAP_A_MAX = 3.0  # truncation error of the table 5e-3 there (docs/physics.md)
+A_OPAQUE = 600.0
+
+
 def log_cap_attenuation(a: float) -> float:
     """log E(a), E(a) = 2 ((a - 1) e^a + 1) / a^2 = int_0^1 2 z e^(a z) dz."""
     a = float(a)
@@ -691,11 +697,11 @@ class SingleScattering:
             r = self.light.radius
             cells = self._cap_cells if self._frozen is not None else None
             tables = [cap_table().table(gk, ktk * r, cells, getattr(self, "_cap_cache", None))
-                      for ktk, gk in zip(kt, g)]
+                      if ktk * r <= CAP_A_MAX else None for ktk, gk in zip(kt, g)]
         for sel, upper, path, sin2, weight, mat in panels:
             rows = slice(None) if len(sel) == len(total) else sel  # all rays: no scatter
             for k, (ktk, gk) in enumerate(zip(kt, g)):
-                if mat is not None:
+                if mat is not None and ktk * self.light.radius <= CAP_A_MAX:
                     expo = (mat @ tables[k]).reshape(path.shape)
                     expo -= np.multiply(path, ktk, out=buf[: path.size].reshape(path.shape))
                     total[rows, k] += np.einsum("ij,ij->i", np.exp(expo, out=expo), weight)
@@ -721,7 +727,9 @@ class SingleScattering:
             if self.light.type == "bulb":
                 r = self.light.radius
                 a = kt[k] * r
-                e_cap = 2 * ((a - 1) * np.exp(a) + 1) / a**2 if a > 1e-4 else 1 + 2 * a / 3
+                # a > A_OPAQUE: the light is attenuated by < e^-600 over one bulb radius, and the
+                # camera is farther than that from the bulb: no glow reaches it
+                e_cap = 0.0 if a > A_OPAQUE else np.exp(log_cap_attenuation(a))
                 intensity = np.pi * r * r * br[k] * e_cap
             else:
                 intensity = br[k]
