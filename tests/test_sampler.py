@@ -81,7 +81,7 @@ def test_resume_continues_exactly(tmp_path):
 @pytest.mark.parametrize("u", [np.array([0.3, 4.0, 0.8]), np.array([-3.0, 12.0, 1.9])])
 def test_optimizer_objective_is_the_sampler_log_probability(u, tmp_path, seed):
     """One function: the value the optimizer maximises is the log-posterior the sampler uses."""
-    from fitmedia.inference.fit import FitOptions, prepare
+    from fitmedia.inference.fit import prepare
     from fitmedia.inference.likelihood import ChannelProblem, Observation
     from fitmedia.inference.params import ParameterSpace
     from fitmedia.forward.single import SingleScattering
