@@ -1,0 +1,630 @@
+"""Many fits at once on Dask: synthetic validation (round trips synth -> fit over media
+and dilutions, scored for the calibration of the credible intervals) and fitting a list
+of captures.  Each task (a round, a capture) writes its own folder and fits its channels
+serially (``FitOptions(workers=1)``; Dask gives the parallelism, one task per
+single-threaded worker process).  A task's result depends only on its inputs and seed,
+not on where or when it ran: a cluster, a laptop and ``scheduler="serial"`` (this
+process, no Dask) give the same numbers, and a rerun skips what is finished.
+Dask, tqdm and matplotlib are imported inside the functions that use them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .errors import InputError
+from .util import atomic_write, atomic_write_text, write_json
+
+if TYPE_CHECKING:  # pragma: no cover  (imported in the functions: `fitmedia --help` stays fast)
+    from .inference.fit import FitOptions
+    from .validate import Score
+
+#: Geometry used by :func:`validate` when none is given (full size, 200 x 150 pixels).
+DEFAULT_GEOMETRY = Path(__file__).resolve().parents[1] / "capture_specs" / "bulb.yaml"
+#: Volume of liquid drawn per round when ``ml`` is not given: log-uniform in this range, ml.
+ML_RANGE = (8.0, 240.0)
+#: Central credible intervals whose coverage is reported.
+LEVELS = (0.68, 0.90, 0.99)
+#: Pass criteria: the 90 % intervals cover the truth in this fraction of the scores ...
+COVERAGE_90_RANGE = (0.85, 0.95)
+#: ... and the mean standardised bias z = (median - truth) / std is smaller than this.
+MAX_ABS_MEAN_Z = 0.2
+#: ``scheduler`` value that runs every task in this process, one after the other, without Dask.
+SERIAL = "serial"
+#: Fit options that may differ between a finished round and a rerun that resumes it.
+_FREE_OPTIONS = ("seed", "workers", "progress", "resume")
+
+
+@dataclass(frozen=True)
+class RoundTask:
+    """One synthetic round trip: what to synthesise, where, with which seed."""
+
+    index: int
+    medium: str
+    ml: tuple[float, ...]
+    seed: int
+    geometry: str
+    geometry_sha256: str
+    tank_ml: float
+    out: str
+    options: FitOptions
+
+    def identity(self) -> dict:
+        """The fields a finished round must share with this task to be reused."""
+        return {"medium": self.medium, "ml": list(self.ml), "seed": self.seed,
+                "tank_ml": self.tank_ml, "geometry_sha256": self.geometry_sha256,
+                "options": {k: v for k, v in asdict(self.options).items()
+                            if k not in _FREE_OPTIONS}}
+
+
+@dataclass
+class ValidationResult:
+    """What :func:`validate` found: ``rounds`` (one record per round: ``index``, ``medium``,
+    ``ml``, ``seed``, ``dir``, ``status`` ``"done"``, ``"done earlier"`` or ``"failed"`` with
+    ``error``), ``scores`` (per round, channel and quantity), ``coverage`` (coverage.json, see
+    :func:`coverage_summary`), ``table`` (coverage.txt) and the ``files`` written."""
+
+    rounds: list[dict]
+    scores: list[Score]
+    coverage: dict
+    table: str
+    files: list[Path] = field(default_factory=list)
+
+    @property
+    def passed(self) -> bool:
+        """True when every quantity meets the coverage and bias criteria."""
+        return bool(self.coverage["passed"])
+
+
+# ---------------------------------------------------------------------------------------------
+# running tasks: in this process, on a local cluster or on an existing scheduler
+
+
+@contextmanager
+def dask_client(scheduler: str | None, n_workers: int) -> Iterator[Any]:
+    """A ``distributed.Client``: on a new ``LocalCluster`` (``scheduler`` None) of
+    ``n_workers`` single-threaded worker processes, or connected to ``scheduler`` (an
+    address such as ``tcp://10.0.0.5:8786``).  Both are closed on exit.
+
+    Local workers start without Dask's default ``MALLOC_TRIM_THRESHOLD_=65536``, with which
+    a fit's large numpy temporaries are returned to the OS and paged in again: one 40 x 30
+    round took 50-60 s of CPU instead of 19-21 s (Dask 2026.8, 2-core Linux VM).  The environment
+    Dask's nanny writes into this process (OMP_NUM_THREADS=1 ...) is restored on exit.
+    """
+    import dask
+    from distributed import Client, LocalCluster
+
+    if scheduler is None:
+        saved = dict(os.environ)
+        try:
+            # no dashboard: nothing listens on a fixed port, so no "port in use" warning
+            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_":
+                                  None}), \
+                    LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                 dashboard_address=None) as cluster, Client(cluster) as client:
+                yield client
+        finally:
+            for k in set(os.environ) - set(saved):
+                del os.environ[k]
+            os.environ.update(saved)
+        return
+    try:
+        client = Client(scheduler)
+    except (OSError, TimeoutError, ValueError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"--scheduler: cannot connect to {scheduler!r}: {first}") from None
+    with client:
+        yield client
+
+
+def run_tasks(fn: Callable[[Any], dict], tasks: Sequence[Any], *, scheduler: str | None,
+              n_workers: int, progress: bool, desc: str, done: int = 0) -> list[dict]:
+    """``[fn(t) for t in tasks]`` in that order, on Dask unless ``scheduler`` is ``"serial"``;
+    ``fn`` must be importable by the workers.  A tqdm bar counts ``done`` earlier tasks too."""
+    from tqdm.auto import tqdm
+
+    out: list[dict] = [{} for _ in tasks]
+    if not tasks:
+        return out
+    if scheduler == SERIAL:
+        with tqdm(total=len(tasks) + done, initial=done, desc=desc, unit="task",
+                  disable=not progress) as bar:
+            for i, t in enumerate(tasks):
+                out[i] = fn(t)
+                bar.update()
+        return out
+    from distributed import as_completed
+
+    with dask_client(scheduler, n_workers) as client, \
+            tqdm(total=len(tasks) + done, initial=done, desc=desc, unit="task",
+                 disable=not progress) as bar:
+        futures = client.map(fn, list(tasks), pure=False)
+        where = {f.key: i for i, f in enumerate(futures)}
+        for fut in as_completed(futures):
+            out[where[fut.key]] = fut.result()
+            bar.update()
+    return out
+
+
+def _check_runner(scheduler: str | None, n_workers: int) -> None:
+    if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
+        raise InputError(f"--scheduler: got {scheduler!r}: expected an address "
+                         f"(tcp://host:8786) or {SERIAL!r}")
+    if scheduler is None and not _is_int(n_workers, 1):
+        raise InputError(f"--workers: got {n_workers!r}: expected a positive integer")
+
+
+def _read_json(path: Path) -> dict | None:
+    """The JSON object in ``path``, or None when it is missing or unreadable (half-written)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+# ---------------------------------------------------------------------------------------------
+# validation
+
+
+def round_seed_and_ml(seed: int, index: int, ml: Sequence[float] | None) -> tuple[int, tuple]:
+    """The seed of round ``index`` and its ml (``ml`` if given, else one volume drawn
+    log-uniformly in :data:`ML_RANGE`, to 0.1 ml), both from ``SeedSequence([seed, index])``
+    so they depend on the round's number only, not on the scheduling or the number of rounds."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, index]))
+    round_seed = int(rng.integers(2**31 - 1))
+    if ml is None:
+        drawn = float(np.exp(rng.uniform(np.log(ML_RANGE[0]), np.log(ML_RANGE[1]))))
+        return round_seed, (round(drawn, 1),)
+    return round_seed, tuple(float(v) for v in ml)
+
+
+def score_round(out: Path, medium_name: str, ml: Sequence[float]) -> list[Score]:
+    """Score a round from its files (round/fit/samples.npz, the medium's table values),
+    as :func:`fitmedia.validate.round_trip` does; used when a round's fit finished but
+    its round.json was not written."""
+    from .medium import medium_by_name
+    from .validate import SCORED, Score
+
+    truth = medium_by_name(medium_name).as_dict()
+    results = _read_json(out / "fit" / "results.json") or {}
+    scores = []
+    with np.load(out / "fit" / "samples.npz") as samples:
+        for ch in results.get("channels", []):
+            for q in SCORED:
+                s, t = samples[f"{ch}/{q}"], truth[q][ch]
+                scores.append(Score(medium_name, tuple(ml), ch, q, t, float(np.median(s)),
+                                    float(np.std(s)), float(np.mean(s < t))))
+    return scores
+
+
+def _run_round(task: RoundTask) -> dict:
+    """Run (or finish) one round; returns its record and writes round.json.  Dask task."""
+    from .medium import medium_by_name
+    from .spec import load_spec
+    from .validate import round_trip
+
+    out = Path(task.out)
+    record: dict = {"index": task.index, "dir": out.name, **task.identity()}
+    t0 = time.perf_counter()
+    try:
+        truth = _read_json(out / "capture" / "truth.json")
+        fitted = _read_json(out / "fit" / "results.json") is not None
+        if fitted and truth and truth.get("seed") == task.seed \
+                and truth.get("medium") == task.medium:
+            scores = score_round(out, task.medium, task.ml)
+        else:
+            geometry = load_spec(task.geometry, require_images=False)
+            scores = round_trip(geometry, medium_by_name(task.medium), list(task.ml), out,
+                                seed=task.seed, options=task.options, tank_ml=task.tank_ml,
+                                name=task.medium)
+    except InputError as exc:
+        return {**record, "status": "failed", "error": str(exc)}
+    record.update(status="done", wall_time_s=time.perf_counter() - t0,
+                  scores=[asdict(s) for s in scores])
+    write_json(out / "round.json", record)
+    return record
+
+
+def _finished_round(task: RoundTask) -> dict | None:
+    """The record of a finished round in the task's folder, or None; a finished round of a
+    different medium, ml, seed, geometry or fit options is an error (a reused ``out_dir``)."""
+    rec = _read_json(Path(task.out) / "round.json")
+    if rec is None or rec.get("status") != "done":
+        return None
+    mine = json.loads(json.dumps(task.identity()))
+    theirs = {k: rec.get(k) for k in mine}
+    # an option added to FitOptions after the round ran: it ran with the default
+    defaults = asdict(type(task.options)())
+    old = theirs["options"] if isinstance(theirs["options"], dict) else {}
+    theirs["options"] = {k: old.get(k, defaults[k]) for k in mine["options"]}
+    if theirs != mine:
+        diff = ", ".join(f"{k} {theirs[k]!r} (now {mine[k]!r})" for k in mine if theirs[k] != mine[k])
+        raise InputError(f"--out: {task.out} holds a finished round with {diff}; "
+                         "use a new --out folder or the same settings")
+    return {**rec, "status": "done earlier"}
+
+
+def _is_int(x: Any, lowest: int) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, bool) and x >= lowest
+
+
+def _check_validate_args(media: list[str], rounds: int, ml: list[float] | None, seed: int,
+                         tank_ml: float, options: FitOptions) -> list[str]:
+    from .medium import medium_by_name
+
+    if not _is_int(rounds, 1):
+        raise InputError(f"--rounds: got {rounds!r}: expected a positive integer")
+    if not _is_int(seed, 0):
+        raise InputError(f"--seed: got {seed!r}: expected an integer >= 0")
+    if not media:
+        raise InputError("--media: no medium given; name one or more of the Narasimhan 2006 table")
+    names = []
+    for m in media:
+        try:
+            names.append(medium_by_name(m).name)
+        except InputError as exc:
+            raise InputError("--media" + str(exc).removeprefix("--medium")) from None
+    if not (np.isfinite(tank_ml) and tank_ml > 0):
+        raise InputError(f"--tank-ml: got {tank_ml}: expected a positive volume in ml")
+    for v in ml or []:
+        if not (np.isfinite(v) and 0 < v < tank_ml):
+            raise InputError(f"--ml: got {v}: expected ml of liquid between 0 and {tank_ml:g}")
+    if ml is not None and len(ml) == 0:
+        raise InputError("--ml: no volume given")
+    if not options.mcmc:
+        raise InputError("options.mcmc: False: validation scores posterior samples; "
+                         "run it with the sampler")
+    return names
+
+
+def validate(media: list[str], rounds: int, out_dir: str | Path, *,
+             ml: list[float] | None = None, geometry: str | Path | None = None, seed: int = 0,
+             scheduler: str | None = None, n_workers: int = 2,
+             options: FitOptions | None = None, tank_ml: float = 23000.0) -> ValidationResult:
+    """Synthetic round trips (synth -> fit) spread over ``media``, scored for coverage.
+
+    Parameters
+    ----------
+    media : list of str
+        Names from the Narasimhan et al. 2006 table; round i uses ``media[i % len(media)]``.
+    rounds : int
+        Number of round trips (each fits R, G and B: 3 scores per quantity and round).
+    out_dir : str or Path
+        Round i writes ``out_dir/round_{i:04d}/`` (``capture/``, ``fit/``, ``round.json``);
+        then ``coverage.json``, ``coverage.txt``, ``coverage.png``.  A rerun skips finished rounds.
+    ml : list of float, optional
+        ml of liquid per image of every round (several: a dilution series).  Default: one
+        image per round, drawn log-uniformly in 8-240 ml from the round's seed.
+    geometry : str or Path, optional
+        Capture spec whose geometry is used as given (images, calibration ignored).
+        Default ``capture_specs/bulb.yaml`` (200 x 150 pixels: minutes per round).
+    seed : int
+        Round i's seed is derived from ``(seed, i)`` (:func:`round_seed_and_ml`).
+    scheduler : str, optional
+        None: a new ``LocalCluster`` of ``n_workers`` single-threaded processes; an address
+        (``tcp://host:8786``): that Dask scheduler, whose workers import this fitmedia and see
+        ``out_dir`` and ``geometry`` at the same paths; ``"serial"``: in this process, no Dask.
+    n_workers : int
+        Worker processes of the local cluster.
+    options : FitOptions, optional
+        Fit settings (default ``FitOptions()``); in a round ``seed`` becomes the round's,
+        ``workers`` 1, ``progress`` False.  ``options.progress`` shows a bar over the rounds.
+    tank_ml : float
+        Water in the tank, ml.
+
+    Returns
+    -------
+    ValidationResult
+    """
+    from .inference.fit import FitOptions
+    from .spec import load_spec
+    from .validate import Score
+
+    options = options or FitOptions()
+    names = _check_validate_args(media, rounds, ml, seed, tank_ml, options)
+    _check_runner(scheduler, n_workers)
+    geo = Path(geometry) if geometry is not None else DEFAULT_GEOMETRY
+    if geometry is None and not geo.is_file():
+        raise InputError(f"--spec: not given, and the default {geo} is not there")
+    load_spec(geo, require_images=False)  # bad geometry fails here, before any round
+    sha = hashlib.sha256(geo.read_bytes()).hexdigest()
+    out = Path(out_dir).resolve()
+    tasks, records = [], {}
+    for i in range(rounds):
+        rseed, rml = round_seed_and_ml(seed, i, ml)
+        task = RoundTask(i, names[i % len(names)], rml, rseed, str(geo.resolve()), sha,
+                         float(tank_ml), str(out / f"round_{i:04d}"),
+                         replace(options, seed=rseed, workers=1, progress=False, resume=False))
+        rec = _finished_round(task)
+        if rec is None:
+            tasks.append(task)
+        else:
+            records[i] = rec
+    ran = run_tasks(_run_round, tasks, scheduler=scheduler, n_workers=n_workers,
+                    progress=options.progress, desc="rounds", done=len(records))
+    records.update({r["index"]: r for r in ran})
+    ordered = [records[i] for i in range(rounds)]
+    scores = [Score(**{**s, "ml": tuple(s["ml"])}) for r in ordered for s in r.get("scores", [])]
+    return write_coverage(out, ordered, scores)
+
+
+def _block(sel: list[Score], levels: Sequence[float]) -> dict:
+    z = np.array([s.z for s in sel], float)
+    fin = np.isfinite(z)
+    cov = {f"{round(100 * lv)}": float(np.mean([s.inside(lv) for s in sel])) for lv in levels}
+    return {"n": len(sel), "coverage": cov,
+            "coverage_90_standard_error": float(np.sqrt(0.9 * 0.1 / len(sel))),
+            "mean_z": float(np.mean(z[fin])) if fin.any() else None,
+            "mean_abs_z": float(np.mean(np.abs(z[fin]))) if fin.any() else None,
+            "n_infinite_z": int(np.sum(~fin))}
+
+
+def coverage_summary(scores: list[Score], levels: Sequence[float] = LEVELS) -> dict:
+    """Coverage of the central credible intervals and standardised bias with the criteria.
+
+    Returns
+    -------
+    dict
+        ``quantities.<q>`` and ``media.<medium>.<q>``, each with ``n`` (rounds x channels),
+        ``coverage`` (fraction of truths inside the central 68/90/99 % interval),
+        ``coverage_90_standard_error`` (binomial), ``mean_z``, ``mean_abs_z`` (z = (median -
+        truth) / posterior std, finite z only), ``n_infinite_z`` (std 0); ``criteria.<q>``
+        (``coverage_90_ok``, ``bias_ok``, ``passed``); ``passed``.
+    """
+    from .validate import SCORED
+
+    quantities = {q: _block([s for s in scores if s.quantity == q], levels)
+                  for q in SCORED if any(s.quantity == q for s in scores)}
+    media = {m: {q: _block([s for s in scores if s.medium == m and s.quantity == q], levels)
+                 for q in quantities}
+             for m in dict.fromkeys(s.medium for s in scores)}
+    criteria = {}
+    for q, b in quantities.items():
+        c90, mz = b["coverage"]["90"], b["mean_z"]
+        cov_ok = COVERAGE_90_RANGE[0] <= c90 <= COVERAGE_90_RANGE[1]
+        bias_ok = mz is not None and abs(mz) < MAX_ABS_MEAN_Z
+        criteria[q] = {"coverage_90_ok": cov_ok, "bias_ok": bias_ok, "passed": cov_ok and bias_ok}
+    return {"levels": list(levels), "quantities": quantities, "media": media,
+            "criteria": criteria, "criteria_definition": {
+                "coverage_90_range": list(COVERAGE_90_RANGE), "max_abs_mean_z": MAX_ABS_MEAN_Z},
+            "passed": bool(criteria) and all(c["passed"] for c in criteria.values())}
+
+
+def write_coverage(out: Path, rounds: list[dict], scores: list[Score]) -> ValidationResult:
+    """Write coverage.json, coverage.txt and coverage.png into ``out`` (atomically)."""
+    from .validate import coverage_table
+
+    summary = coverage_summary(scores)
+    failed = [r for r in rounds if r["status"] == "failed"]
+    lines = [f"{len(rounds)} rounds, {len(failed)} failed; n counts rounds x channels", "",
+             coverage_table(scores, LEVELS) if scores else "(no scores)"]
+    for m in summary["media"]:
+        lines += ["", f"{m}:", coverage_table([s for s in scores if s.medium == m], LEVELS)]
+    lines += ["", (f"criteria: 90 % intervals cover in {COVERAGE_90_RANGE[0]:.0%}-"
+                   f"{COVERAGE_90_RANGE[1]:.0%} of the scores and |mean z| < {MAX_ABS_MEAN_Z}")]
+    for q, c in summary["criteria"].items():
+        lines.append(f"  {q:10s} {'pass' if c['passed'] else 'FAIL'}"
+                     + ("" if c["coverage_90_ok"] else "  (90 % coverage out of range)")
+                     + ("" if c["bias_ok"] else "  (|mean z| too large)"))
+    lines += [f"  round {r['index']} ({r['medium']}): {r['error']}" for r in failed]
+    table = "\n".join(lines) + "\n"
+    summary["rounds"] = [{k: v for k, v in r.items() if k != "scores"} for r in rounds]
+    files = [out / "coverage.json", out / "coverage.txt", out / "coverage.png"]
+    write_json(files[0], summary)
+    atomic_write_text(files[1], table)
+    atomic_write(files[2], lambda p: _coverage_figure(rounds).savefig(p, format="png"))
+    return ValidationResult(rounds, scores, summary, table, files)
+
+
+def _coverage_figure(rounds: list[dict]):
+    """Top: histogram of the truth's posterior quantile (PIT; uniform if calibrated) per
+    quantity, with the ±2σ Poisson band.  Bottom: z per round, coloured by channel."""
+    from matplotlib.ticker import MaxNLocator
+
+    from .report.plots import new_figure
+    from .validate import SCORED, Score
+
+    fig = new_figure(11.0, 6.0)
+    axes = fig.subplots(2, len(SCORED), squeeze=False)
+    for k, q in enumerate(SCORED):
+        sel = [(r["index"], Score(**s)) for r in rounds for s in r.get("scores", [])
+               if s["quantity"] == q]
+        top, bottom, per_bin = axes[0, k], axes[1, k], len(sel) / 10
+        top.hist([s.pit for _, s in sel], bins=10, range=(0, 1), color="0.6", edgecolor="k")
+        top.axhline(per_bin, color="k", ls="--", lw=0.8)
+        top.axhspan(max(per_bin - 2 * np.sqrt(per_bin), 0), per_bin + 2 * np.sqrt(per_bin),
+                    color="k", alpha=0.1)
+        top.set_title(f"{q}: truth's posterior quantile (n = {len(sel)})", fontsize=9)
+        top.set(xlabel="PIT (unitless)", ylabel="scores per bin", ylim=(0, None))
+        for ch, colour in {"R": "tab:red", "G": "tab:green", "B": "tab:blue"}.items():
+            x, z = [i for i, s in sel if s.channel == ch], [s.z for _, s in sel if s.channel == ch]
+            bottom.plot(x, np.clip(z, -10, 10), "o", ms=3, color=colour, label=ch)
+        for y in (-2, -1, 0, 1, 2):
+            bottom.axhline(y, color="0.5", ls="-" if y == 0 else ":", lw=0.8)
+        bottom.set(xlabel="round", ylabel="z = (median - truth) / std (clipped ±10)")
+        bottom.xaxis.set_major_locator(MaxNLocator(integer=True))
+        bottom.legend(fontsize=7)
+    return fig
+
+
+# ---------------------------------------------------------------------------------------------
+# many captures
+
+
+@dataclass(frozen=True)
+class FitTask:
+    spec: str
+    name: str
+    out: str
+    options: FitOptions
+    report: bool
+
+
+def _summary_record(task: FitTask, results: dict, status: str) -> dict:
+    p = results.get("parameters", {})
+    key = "median" if "median" in p.get("kappa_s", {}).get(results["channels"][0], {}) else "map"
+    est = {q: {ch: {"value": p[q][ch][key], "std": p[q][ch].get("std")}
+               for ch in results["channels"]} for q in ("kappa_a", "kappa_s", "g") if q in p}
+    return {"spec": task.spec, "name": task.name, "out": task.out, "status": status,
+            "statistic": key, "units": "1/mm (kappa), undiluted", "estimates": est,
+            "converged": results.get("diagnostics", {}).get("converged"),
+            "wall_time_s": results.get("wall_time_s")}
+
+
+def _run_fit(task: FitTask) -> dict:
+    """Fit one capture; an InputError is returned as a failed record.  Dask task."""
+    from .pipeline import fit
+
+    try:
+        results = fit(task.spec, task.out, task.options, report=task.report)
+    except InputError as exc:
+        return {"spec": task.spec, "name": task.name, "out": task.out, "status": "failed",
+                "error": str(exc)}
+    return _summary_record(task, results, "done")
+
+
+def fit_many(specs: list[str | Path], out_dir: str | Path, *, scheduler: str | None = None,
+             n_workers: int = 2, options: FitOptions | None = None,
+             report: bool = True) -> list[dict]:
+    """Fit many captures, as ``fitmedia fit`` does, spread over Dask.
+
+    Parameters
+    ----------
+    specs : list of str or Path
+        Capture i writes ``out_dir/<stem>/`` (stem: the spec's file name without suffix), or
+        ``out_dir/<i:04d>_<stem>/`` when two specs share a stem.  A folder that already holds
+        a readable results.json is not fitted again.
+    out_dir : str or Path
+        Also receives ``summary.json`` (the returned records).
+    scheduler, n_workers, options
+        As in :func:`validate` (``options.seed`` is used for every capture).
+    report : bool
+        Also write each fit's report.html.
+
+    Returns
+    -------
+    list of dict
+        Per capture: ``spec``, ``name``, ``out``, ``status`` (``"done"``, ``"done earlier"``
+        or ``"failed"`` with the InputError's message in ``error``); for fits
+        ``estimates.<kappa_a|kappa_s|g>.<ch>`` (``value``: posterior median, or MAP without
+        sampler, 1/mm undiluted; ``std``) and ``converged``.
+    """
+    if not specs:
+        raise InputError("SPEC: no capture spec given")
+    from .inference.fit import FitOptions
+
+    options = options or FitOptions()
+    _check_runner(scheduler, n_workers)
+    out = Path(out_dir).resolve()
+    stems = [Path(s).stem for s in specs]
+    unique = len(set(stems)) == len(stems)
+    inner = replace(options, workers=1, progress=False)
+    records: dict[int, dict] = {}
+    todo, where = [], []
+    for i, (s, stem) in enumerate(zip(specs, stems)):
+        name = stem if unique else f"{i:04d}_{stem}"
+        task = FitTask(str(Path(s).resolve()), name, str(out / name), inner, report)
+        prior = _read_json(out / name / "results.json")
+        if prior is not None and prior.get("parameters") and prior.get("channels"):
+            records[i] = _summary_record(task, prior, "done earlier")
+        else:
+            todo.append(task)
+            where.append(i)
+    ran = run_tasks(_run_fit, todo, scheduler=scheduler, n_workers=n_workers,
+                    progress=options.progress, desc="captures", done=len(records))
+    records.update(zip(where, ran))
+    summary = [records[i] for i in range(len(specs))]
+    write_json(out / "summary.json", {"captures": summary,
+                                      "n_failed": sum(r["status"] == "failed" for r in summary)})
+    return summary
+
+
+# ---------------------------------------------------------------------------------------------
+# command line
+
+
+def _fit_options(a, **kw) -> FitOptions:
+    from .inference.fit import FitOptions
+
+    return FitOptions(seed=a.seed, max_steps=a.max_steps, n_tau=a.n_tau, progress=not a.quiet,
+                      **kw)
+
+
+def _add_runner_args(p) -> None:
+    from .cli import _finite, _positive_int
+
+    p.add_argument("--scheduler", default=None,
+                   help="Dask scheduler address (tcp://host:8786); default: a local cluster; "
+                        f"{SERIAL!r}: no Dask, one task after the other in this process")
+    p.add_argument("--workers", type=_positive_int, default=2,
+                   help="worker processes of the local cluster (default 2)")
+    p.add_argument("--max-steps", type=_positive_int, default=20000)
+    p.add_argument("--n-tau", type=_finite, default=50.0, help="chain length in autocorr. times")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def add_validate_parser(sub) -> None:
+    """Add ``fitmedia validate`` to the subparsers ``sub``."""
+    from .cli import _finite, _positive_int
+
+    p = sub.add_parser("validate", help="synthetic round trips on Dask; coverage of the "
+                                        "credible intervals (docs/validation.md)")
+    p.add_argument("--rounds", type=_positive_int, required=True)
+    p.add_argument("--media", nargs="+", required=True, metavar="NAME",
+                   help="liquids of the Narasimhan 2006 table, used in turn")
+    p.add_argument("--out", required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--spec", default=None, help="geometry spec (default capture_specs/bulb.yaml)")
+    p.add_argument("--ml", type=_finite, nargs="+", default=None,
+                   help="ml per image of every round (default: drawn in 8-240 per round)")
+    p.add_argument("--tank-ml", type=_finite, default=23000.0)
+    _add_runner_args(p)
+    p.set_defaults(func=cmd_validate)
+
+
+def cmd_validate(a) -> int:
+    """Exit code 0 when the criteria are met, 1 when not (the table says which)."""
+    res = validate(a.media, a.rounds, a.out, ml=a.ml, geometry=a.spec, seed=a.seed,
+                   scheduler=a.scheduler, n_workers=a.workers, options=_fit_options(a),
+                   tank_ml=a.tank_ml)
+    print(res.table, end="")
+    print(f"wrote {', '.join(str(f) for f in res.files)}")
+    return 0 if res.passed else 1
+
+
+def add_fit_many_parser(sub) -> None:
+    """Add ``fitmedia fit-many`` to the subparsers ``sub``."""
+    p = sub.add_parser("fit-many", help="fit many captures on Dask; summary.json")
+    p.add_argument("specs", nargs="+", metavar="SPEC")
+    p.add_argument("--out", required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-mcmc", action="store_true", help="MAP only, no posterior sampling")
+    p.add_argument("--no-report", action="store_true")
+    _add_runner_args(p)
+    p.set_defaults(func=cmd_fit_many)
+
+
+def cmd_fit_many(a) -> int:
+    """Exit code 0 when every capture was fitted, 2 when some failed (one line each)."""
+    import sys
+
+    recs = fit_many(a.specs, a.out, scheduler=a.scheduler, n_workers=a.workers,
+                    options=_fit_options(a, mcmc=not a.no_mcmc), report=not a.no_report)
+    for r in recs:
+        if r["status"] == "failed":
+            print(f"fitmedia: error: {r['name']}: {r['error']}", file=sys.stderr)
+        else:
+            print(f"{r['name']}: {r['status']} ({r['out']})")
+    print(f"wrote {Path(a.out) / 'summary.json'}")
+    return 2 if any(r["status"] == "failed" for r in recs) else 0

@@ -1,0 +1,265 @@
+"""Batch runs (fitmedia.batch): validation round trips give the same numbers on a Dask
+LocalCluster as in this process, reruns resume, and fit_many records a broken capture
+without stopping the others.
+
+These use REDUCED settings: a 40 x 30 pixel geometry and FitOptions(max_steps=300,
+n_tau=5).  They check the machinery (seeds, scheduling, resume, files), not the
+calibration of the posterior: at this size and chain length the credible intervals are
+not expected to cover the truth (docs/validation.md gives the settings of a real run).
+One round costs one reduced fit: 12-45 s of CPU on a 2-core VM, depending on the version of
+the forward model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import geometry_dict
+
+from fitmedia import batch
+from fitmedia.batch import fit_many, round_seed_and_ml, validate
+from fitmedia.errors import InputError
+from fitmedia.inference.fit import FitOptions
+
+MEDIA = ["Lowfat Milk", "Espresso"]
+OPTIONS = FitOptions(max_steps=300, n_tau=5, progress=False)  # reduced: see module docstring
+
+
+@pytest.fixture(scope="module")
+def geometry(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("geom") / "geometry.yaml"
+    path.write_text(yaml.safe_dump(geometry_dict(width=40, height=30)))
+    return path
+
+
+@pytest.fixture(scope="module")
+def serial_run(tmp_path_factory, geometry):
+    """Two rounds (one milk, one espresso) in this process, no Dask."""
+    out = tmp_path_factory.mktemp("serial")
+    return out, validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial",
+                         options=OPTIONS)
+
+
+def _key(scores):
+    return [(s.medium, s.ml, s.channel, s.quantity, s.median, s.std, s.pit) for s in scores]
+
+
+def test_dask_local_cluster_gives_the_serial_results(serial_run, geometry, tmp_path):
+    """The same seeds on a LocalCluster of 2 worker processes give bit-identical posterior
+    medians, standard deviations and PITs as the serial run, and the same coverage files."""
+    _, serial = serial_run
+    res = validate(MEDIA, 2, tmp_path, geometry=geometry, seed=7, scheduler=None, n_workers=2,
+                   options=OPTIONS)
+    assert [r["status"] for r in res.rounds] == ["done", "done"]
+    assert len(res.scores) == 2 * 3 * 3  # rounds x channels x (kappa_s, kappa_t, g)
+    assert _key(res.scores) == _key(serial.scores)
+    assert res.coverage["quantities"] == serial.coverage["quantities"]
+    for f in ("coverage.json", "coverage.txt", "coverage.png"):
+        assert (tmp_path / f).stat().st_size > 0
+    assert (tmp_path / "round_0001" / "fit" / "results.json").is_file()
+
+
+def test_serial_run_files(serial_run):
+    out, res = serial_run
+    cov = json.loads((out / "coverage.json").read_text())
+    assert set(cov["quantities"]) == {"kappa_s", "kappa_t", "g"}
+    assert set(cov["media"]) == set(MEDIA)
+    for q in cov["quantities"].values():
+        assert q["n"] == 6 and set(q["coverage"]) == {"68", "90", "99"}
+    assert [r["medium"] for r in cov["rounds"]] == MEDIA
+    assert (out / "coverage.txt").read_text() == res.table
+    assert "kappa_t" in res.table and "criteria" in res.table
+    assert (out / "coverage.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_rerun_skips_finished_rounds(serial_run, geometry, tmp_path, monkeypatch):
+    """A rerun refits nothing: finished rounds are read back; a round whose fit finished but
+    whose round.json is missing is rescored from its files, with the same scores."""
+    src, first = serial_run
+    out = tmp_path / "copy"
+    shutil.copytree(src, out)
+    (out / "round_0001" / "round.json").unlink()
+    before = (out / "round_0001" / "fit" / "results.json").stat().st_mtime_ns
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a finished round was fitted again")
+
+    monkeypatch.setattr("fitmedia.validate.round_trip", no_fit)
+    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS)
+    assert [r["status"] for r in res.rounds] == ["done earlier", "done"]
+    assert _key(res.scores) == _key(first.scores)
+    assert (out / "round_0001" / "fit" / "results.json").stat().st_mtime_ns == before
+    again = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial",
+                     options=OPTIONS)
+    assert [r["status"] for r in again.rounds] == ["done earlier", "done earlier"]
+
+
+def test_rerun_with_other_settings_in_the_same_folder_is_refused(serial_run, geometry):
+    out, _ = serial_run
+    with pytest.raises(InputError, match="--out: .*round_0000.*seed"):
+        validate(MEDIA, 2, out, geometry=geometry, seed=8, scheduler="serial", options=OPTIONS)
+    with pytest.raises(InputError, match="--out: .*round_0000.*options.*'max_steps': 300"):
+        validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial",
+                 options=replace(OPTIONS, max_steps=301))
+
+
+def test_round_seeds_depend_on_seed_and_index_only():
+    a = [round_seed_and_ml(3, i, None) for i in range(5)]
+    assert a[:2] == [round_seed_and_ml(3, i, None) for i in range(2)]
+    assert len({s for s, _ in a}) == 5
+    assert all(8.0 <= ml[0] <= 240.0 for _, ml in a)
+    assert round_seed_and_ml(3, 1, [16, 32])[1] == (16.0, 32.0)
+    assert round_seed_and_ml(3, 1, [16])[0] == a[1][0]
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"media": ["Lowfat Mlik"]}, "--media: unknown medium 'Lowfat Mlik'"),
+    ({"media": []}, "--media"),
+    ({"rounds": 0}, "--rounds"),
+    ({"seed": -1}, "--seed"),
+    ({"ml": [-4.0]}, "--ml: got -4.0"),
+    ({"options": FitOptions(mcmc=False)}, "options.mcmc"),
+    ({"scheduler": None, "n_workers": 0}, "--workers"),
+    ({"geometry": "missing.yaml"}, "missing.yaml"),
+])
+def test_bad_validate_input_is_an_input_error(kwargs, words, geometry, tmp_path):
+    args = {"media": MEDIA, "rounds": 1, "out_dir": tmp_path, "geometry": geometry,
+            "scheduler": "serial", "options": OPTIONS}
+    args.update(kwargs)
+    with pytest.raises(InputError, match=words):
+        validate(args.pop("media"), args.pop("rounds"), args.pop("out_dir"), **args)
+    assert not any(tmp_path.iterdir())  # nothing ran, nothing written
+
+
+def test_local_cluster_workers_and_this_process_environment(monkeypatch):
+    """Workers start without Dask's MALLOC_TRIM_THRESHOLD_ (a 2x slowdown of fits) and single-
+    threaded; the environment Dask's nanny writes into this process is restored afterwards."""
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    before = dict(os.environ)
+    with batch.dask_client(None, 1) as client:
+        env = client.run(lambda: {k: os.environ.get(k)
+                                  for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")})
+    assert list(env.values()) == [{"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}]
+    assert dict(os.environ) == before
+
+
+def test_unreachable_scheduler_is_an_input_error():
+    import dask
+
+    with pytest.raises(InputError, match="--scheduler: cannot connect to 'tcp://127.0.0.1:1'"), \
+            dask.config.set({"distributed.comm.timeouts.connect": "1s"}), \
+            batch.dask_client("tcp://127.0.0.1:1", 1):
+        pass
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory, geometry):
+    from fitmedia.medium import medium_by_name
+    from fitmedia.spec import load_spec
+    from fitmedia.synth import synthesize
+
+    d = tmp_path_factory.mktemp("cap")
+    return synthesize(load_spec(geometry, require_images=False), d / "good",
+                      medium_by_name("Lowfat Milk"), [16], seed=3)
+
+
+MAP_ONLY = FitOptions(mcmc=False, global_evals=100, progress=False)  # fast: no sampler
+
+
+@pytest.fixture(scope="module")
+def many_run(capture, tmp_path_factory):
+    """fit_many on a 2-worker LocalCluster: the good capture (MAP only, for speed) and a
+    broken one (an image path that does not exist)."""
+    data = yaml.safe_load(capture.read_text())
+    data["images"][0]["path"] = "images/missing.tiff"
+    broken = capture.parent / "broken.yaml"
+    broken.write_text(yaml.safe_dump(data))
+    out = tmp_path_factory.mktemp("many")
+    specs = [capture, broken]
+    return specs, out, fit_many(specs, out, scheduler=None, n_workers=2, options=MAP_ONLY,
+                                report=False)
+
+
+def test_fit_many_records_a_broken_capture_and_fits_the_others(many_run):
+    _, out, recs = many_run
+    assert [r["status"] for r in recs] == ["done", "failed"]
+    assert [r["name"] for r in recs] == ["capture", "broken"]
+    assert "images[0].path" in recs[1]["error"] and "\n" not in recs[1]["error"]
+    assert recs[0]["statistic"] == "map"
+    assert recs[0]["estimates"]["kappa_s"]["G"]["value"] > 0
+    assert (out / "capture" / "results.json").is_file()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_failed"] == 1 and summary["captures"][1]["status"] == "failed"
+
+
+def test_fit_many_rerun_skips_finished_captures(many_run, tmp_path):
+    specs, out, recs = many_run
+    shutil.copytree(out, tmp_path / "o")
+    again = fit_many(specs, tmp_path / "o", scheduler="serial", options=MAP_ONLY, report=False)
+    assert [r["status"] for r in again] == ["done earlier", "failed"]
+    assert again[0]["estimates"] == recs[0]["estimates"]
+
+
+def test_fit_many_same_stems_get_numbered_folders(tmp_path):
+    recs = fit_many([tmp_path / "a" / "capture.yaml", tmp_path / "b" / "capture.yaml"],
+                    tmp_path / "o", scheduler="serial", options=MAP_ONLY)
+    assert [r["name"] for r in recs] == ["0000_capture", "0001_capture"]
+    assert all(r["status"] == "failed" and "not found" in r["error"] for r in recs)
+
+
+def _cli(argv: list[str]) -> int:
+    """The subcommands as cli.py wires them (add_*_parser, then ``a.func(a)``)."""
+    p = argparse.ArgumentParser(prog="fitmedia")
+    sub = p.add_subparsers(dest="command", required=True)
+    batch.add_validate_parser(sub)
+    batch.add_fit_many_parser(sub)
+    a = p.parse_args([str(x) for x in argv])
+    return a.func(a)
+
+
+def test_cli_fit_many_exit_code_and_one_line_per_failure(many_run, tmp_path, capsys):
+    specs, out, _ = many_run
+    shutil.copytree(out, tmp_path / "o")  # the good capture is already fitted there
+    code = _cli(["fit-many", *specs, "--out", tmp_path / "o", "--scheduler", "serial",
+                 "--no-mcmc", "--no-report", "--quiet"])
+    cap = capsys.readouterr()
+    err = cap.err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and "broken.yaml" in err[0] and "Traceback" not in cap.err
+    assert "capture: done earlier" in cap.out
+
+
+def test_cli_validate_bad_medium_and_bad_rounds(tmp_path, capsys):
+    with pytest.raises(InputError, match="--media"):
+        _cli(["validate", "--rounds", "1", "--media", "Milk?", "--out", tmp_path,
+              "--scheduler", "serial"])
+    with pytest.raises(SystemExit) as exc:
+        _cli(["validate", "--rounds", "0", "--media", "Espresso", "--out", tmp_path])
+    assert exc.value.code == 2
+    assert "--rounds" in capsys.readouterr().err
+
+
+def test_coverage_summary_criteria():
+    """Scores of a calibrated posterior pass, scores biased by half a standard deviation fail
+    (criteria of docs/validation.md).  Posterior N(median, 1): PIT = Phi(truth - median)."""
+    from scipy.stats import norm
+
+    from fitmedia.validate import Score
+
+    z = np.random.default_rng(1).standard_normal(400)
+    good = [Score("m", (8.0,), "R", "kappa_s", 1.0, 1.0 + e, 1.0, float(norm.cdf(-e))) for e in z]
+    bad = [Score("m", (8.0,), "R", "kappa_s", 1.0, 1.5 + e, 1.0, float(norm.cdf(-e - 0.5)))
+           for e in z]
+    cg = batch.coverage_summary(good)
+    assert cg["passed"], cg["quantities"]
+    assert abs(cg["quantities"]["kappa_s"]["coverage"]["90"] - 0.9) < 0.05
+    cb = batch.coverage_summary(bad)
+    assert not cb["passed"] and not cb["criteria"]["kappa_s"]["bias_ok"]
