@@ -189,6 +189,13 @@ def build_parser() -> argparse.ArgumentParser:
     sl.add_argument("--seed", type=int, default=0)
     sl.add_argument("--json", action="store_true")
     sl.set_defaults(func=cmd_slab)
+
+    from .batch import add_fit_many_parser, add_validate_parser
+    from .export import add_export_parser
+
+    add_validate_parser(sub)
+    add_fit_many_parser(sub)
+    add_export_parser(sub)
     return p
 
 

@@ -21,7 +21,11 @@ class SpecError(InputError):
     def __init__(self, where: str, field: str, message: str):
         self.where = where
         self.field = field
+        self.message = message
         super().__init__(f"{where}: {field}: {message}" if field else f"{where}: {message}")
+
+    def __reduce__(self):  # picklable across process pools (Dask, multiprocessing)
+        return (type(self), (self.where, self.field, self.message))
 
 
 class ImageError(InputError):

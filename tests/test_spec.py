@@ -171,3 +171,11 @@ def test_overrides_and_brackets():
     assert spec.camera_for(1) is spec.camera
     data["images"][0]["exposure_s"] = [0.1, 1.0, 2.0]
     assert "images[0].exposure_s" in _err(data)
+
+
+def test_spec_error_survives_pickling():
+    """Errors cross process boundaries (Dask workers, process pools) intact."""
+    import pickle
+
+    err = pickle.loads(pickle.dumps(SpecError("s.yaml", "camera.fx", "got -1: must be > 0")))
+    assert str(err) == "s.yaml: camera.fx: got -1: must be > 0" and err.field == "camera.fx"
