@@ -397,14 +397,15 @@ def test_bulb_glow_matches_exact_finite_sphere_integral(g, medium):
 
 
 def test_frozen_nodes_reproduce_the_adaptive_render():
-    """Freezing the nodes changes nothing at the parameters they were frozen at, and little
-    nearby (the cap table is read at the new g and kappa_t either way)."""
+    """Freezing the nodes changes nothing at the parameters they were frozen at (but the
+    adaptive render's float32 read of the cap table, 1e-6), and little nearby (the cap table
+    is read at the new g and kappa_t either way)."""
     spec = make_spec()
     model = SingleScattering(spec, channels=("R", "G"))
     args = ([1e-3, 2e-3], [0.02, 0.03], [0.93, 0.85], [1.0, 1.5])
     ref = model.render(*args)
     model.freeze_nodes(np.add(args[0], args[1]), args[2])
-    np.testing.assert_allclose(model.render(*args), ref, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(model.render(*args), ref, rtol=1e-6, atol=0)
     near = ([1.1e-3, 2e-3], [0.021, 0.03], [0.935, 0.84], [1.0, 1.5])
     frozen = model.render(*near)
     model.unfreeze_nodes()
