@@ -350,22 +350,24 @@ def test_cap_average_small_cap_limit(g):
 @pytest.mark.parametrize("a", [0.06, 1.4])
 def test_cap_table_interpolates_the_cap_average(g, a):
     """The table the model reads (bilinear in the cells, cubic in atanh g, cumulant series in
-    a) against the direct quadrature, at random nodes of rays passing 0-0.6 r, 0.6-1 r from the
-    bulb and through it: median error of log pbar < 2e-4, 99th percentile < 3e-3."""
+    a) against the direct quadrature, at random nodes of rays passing beyond r/0.6 (error of
+    log pbar: median < 2e-4, 99th percentile < 5e-4), between r and r/0.6 and through the
+    bulb (median < 4e-4, 99th percentile < 3e-3)."""
     from fitmedia.forward.single import cap_average, cap_table
 
     tab = cap_table()
     t = tab.table(g, a)
     rng = np.random.default_rng(7)
     n = 400
-    for lo, hi in ((0.0, 0.6), (0.6, 0.999), (1.0, 30.0)):
+    for lo, hi, med, p99 in ((0.0, 0.6, 2e-4, 5e-4), (0.6, 0.999, 4e-4, 3e-3),
+                             (1.0, 30.0, 4e-4, 3e-3)):
         rho = lo + (hi - lo) * rng.random(n)
         theta = (np.arcsin(1 / rho) if lo >= 1 else np.pi) * rng.random(n) ** 1.5
         sin_alpha = np.minimum(rho * np.sin(theta), 1.0)
         row, frac = tab.rows(rho)
         mat = tab.matrix(theta[:, None], sin_alpha[:, None], row, frac, rho >= 1)
         err = np.abs(mat @ t - np.log(cap_average(theta, np.arcsin(sin_alpha), g, a)))
-        assert np.median(err) < 2e-4 and np.quantile(err, 0.99) < 3e-3, (lo, hi, err.max())
+        assert np.median(err) < med and np.quantile(err, 0.99) < p99, (lo, hi, err.max())
 
 
 BAND_PIXELS = {"10-40 mm": [[27, 45], [24, 49], [26, 41], [22, 51]],

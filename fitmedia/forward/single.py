@@ -55,6 +55,11 @@ from collections import OrderedDict
 import numpy as np
 from scipy import sparse
 
+try:  # y += A x into an existing array (no temporary); falls back to A @ x
+    from scipy.sparse._sparsetools import csr_matvec as _csr_matvec
+except ImportError:  # pragma: no cover - private scipy API
+    _csr_matvec = None
+
 from ..geometry import WaterRays, pixel_grid, trace_to_water
 from ..spec import Camera, Spec
 
@@ -143,8 +148,8 @@ def _cone_interval(u: np.ndarray, v: np.ndarray, axis: np.ndarray, cutoff_deg: f
 # m = 2B / (A + B), with A -+ B = 1 + g^2 - 2 g cos(theta_c -+ beta).
 
 _TH0 = 0.005                          # theta grid: uniform in _theta_x, fine near 0 and pi
-_XPI = float(np.arcsinh(np.pi / _TH0))
-_NX = 409                             # theta columns (step 0.035 in asinh units)
+_XPI = float(np.log((np.pi + _TH0) / _TH0))
+_NX = 409                             # theta columns (step 0.035 in log units)
 _DX = 2 * _XPI / (_NX - 1)
 _RHO_A = np.arange(31) * 0.02                                  # 0 .. 0.6, uniform in rho
 _ETA = 1e-3
@@ -172,8 +177,9 @@ def _ellipe_1m(m1: np.ndarray) -> np.ndarray:
 
 
 def _theta_x(theta):
-    """Table coordinate of theta_c (in units of the grid step)."""
-    return (np.arcsinh(theta / _TH0) - np.arcsinh((np.pi - theta) / _TH0) + _XPI) / _DX
+    """Table coordinate of theta_c (in units of the grid step): log((theta + th0) /
+    (pi - theta + th0)), uniform in theta within th0 of 0 and pi, in log theta beyond."""
+    return (np.log((theta + _TH0) / ((np.pi + _TH0) - theta)) + _XPI) / _DX
 
 
 def _rho_y(rho):
@@ -378,21 +384,35 @@ class _CapTable:
         return j, np.clip((y - self.y_rows[j]) / (self.y_rows[j + 1] - self.y_rows[j]), 0.0, 1.0)
 
     def matrix(self, theta: np.ndarray, sin_alpha: np.ndarray, row: np.ndarray,
-               row_frac: np.ndarray, hit: np.ndarray) -> sparse.csr_matrix:
+               row_frac: np.ndarray, hit: np.ndarray, work: dict | None = None
+               ) -> sparse.csr_matrix:
         """Sparse bilinear interpolation from the cells to the nodes of m rays.
 
         ``theta``, ``sin_alpha``: (m, n) node angles; ``row``, ``row_frac``: (m,) from
         :meth:`rows`; ``hit``: (m,) rays whose nodes go to block C (lower half, r/h >= 1).
-        Rows of the matrix follow the nodes in C order.
+        Rows of the matrix follow the nodes in C order.  ``work``: arrays reused from call to
+        call (the matrix then shares them: for a matrix used before the next call only).
         """
         m, n = theta.shape
+        size = m * n
+        if work is None or work.get("size") != size:
+            work = {} if work is None else work
+            work.clear()
+            work.update(size=size, cols=np.empty(4 * size, dtype=np.int32),
+                        w=np.empty(4 * size), base=np.empty(size, dtype=np.int32),
+                        fx=np.empty(size), fy=np.empty(size), gx=np.empty(size),
+                        gy=np.empty(size),
+                        indptr=np.arange(0, 4 * size + 1, 4, dtype=np.int32))
+        base, fx, fy, gx, gy = (work[k] for k in ("base", "fx", "fy", "gx", "gy"))
         x = _theta_x(theta).ravel()  # the grid is x = 0, 1, ..., _NX - 1
-        i = np.minimum(x.astype(np.int32), _NX - 2)
-        fx = x - i
-        base = i * self.nrow
-        base += np.repeat(row.astype(np.int32), n)
-        fy = np.repeat(row_frac, n)
-        step = np.full(m * n, self.nrow, dtype=np.int32)
+        np.minimum(x, _NX - 2, out=fx)
+        np.floor(fx, out=gx)
+        base[:] = gx
+        np.subtract(x, gx, out=fx)
+        base *= self.nrow
+        base.reshape(m, n)[:] += row.astype(np.int32)[:, None]
+        fy.reshape(m, n)[:] = row_frac[:, None]
+        step = self.nrow
         if hit.any():  # block C: every other theta column, z = asinh((alpha - theta)/_TH0)
             h = (np.flatnonzero(hit)[:, None] * n + np.arange(n)).ravel()
             xh = 0.5 * x[h]
@@ -403,22 +423,29 @@ class _CapTable:
             iz = np.minimum(z.astype(np.int32), self.nz - 2)
             fy[h] = np.minimum(z - iz, 1.0)
             base[h] = self.nab + ic * self.nz + iz
+            step = np.full(size, self.nrow, dtype=np.int32)
             step[h] = self.nz
-        cols = np.empty(4 * m * n, dtype=np.int32)
+        cols, w = work["cols"], work["w"]
         cols[0::4] = base
-        cols[1::4] = base + 1
+        np.add(base, 1, out=cols[1::4])
         base += step
         cols[2::4] = base
-        cols[3::4] = base + 1
-        w = np.empty(4 * m * n)
-        gx = 1.0 - fx
-        gy = 1.0 - fy
+        np.add(base, 1, out=cols[3::4])
+        np.subtract(1.0, fx, out=gx)
+        np.subtract(1.0, fy, out=gy)
         np.multiply(gx, gy, out=w[0::4])
         np.multiply(gx, fy, out=w[1::4])
         np.multiply(fx, gy, out=w[2::4])
         np.multiply(fx, fy, out=w[3::4])
-        indptr = np.arange(0, 4 * m * n + 1, 4, dtype=np.int32)
-        return sparse.csr_matrix((w, cols, indptr), shape=(m * n, self.size))
+        return sparse.csr_matrix((w, cols, work["indptr"]), shape=(size, self.size))
+
+
+def _matvec_add(mat: sparse.csr_matrix, x: np.ndarray, y: np.ndarray) -> None:
+    """y += mat @ x (y contiguous float64)."""
+    if _csr_matvec is not None and mat.indices.dtype == np.int32:
+        _csr_matvec(mat.shape[0], mat.shape[1], mat.indptr, mat.indices, mat.data, x, y)
+    else:
+        y += mat @ x
 
 
 _CAP_TABLE: _CapTable | None = None
@@ -495,8 +522,19 @@ class SingleScattering:
         self._rules = {n: _gauss_legendre(n) for n in {self.nodes, self.nodes_upper}}
         self._frozen: list | None = None
         self._cap_cells: np.ndarray | None = None
+        self._freezing = False
+        self._work = threading.local()  # arrays reused by the adaptive renders' cap matrices
         self.box_filter = box_filter
         self._build(int(supersample), int(bulb_supersample), int(halo_supersample))
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        del state["_work"]  # per-thread scratch arrays
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._work = threading.local()
 
     # ----------------------------------------------------------------- set-up
     def _rays(self, sub: int, mask: np.ndarray | None = None):
@@ -613,8 +651,11 @@ class SingleScattering:
             # Omega / (pi r^2 / d^2) = 2 (1 - cos alpha) / sin^2 alpha = 2 / (1 + cos alpha)
             weight *= 2.0 / (1.0 + np.sqrt(1.0 - sin_alpha * sin_alpha))
             hit = self._cap_hit[sel] & (not upper)
+            if not hasattr(self._work, "by_half"):
+                self._work.by_half = {}
+            work = None if self._freezing else self._work.by_half.setdefault(upper, {})
             mat = cap_table().matrix(np.pi - w if upper else w, sin_alpha, self._cap_row[sel],
-                                     self._cap_frac[sel], hit)
+                                     self._cap_frac[sel], hit, work)
         return path, t2 / (1 + t2), weight, mat
 
     def _nodes(self, kt: np.ndarray, g: np.ndarray) -> list[tuple]:
@@ -661,7 +702,11 @@ class SingleScattering:
         """
         kt = np.broadcast_to(np.asarray(kappa_t, float), (len(self.channels),))
         gg = np.broadcast_to(np.asarray(g, float), (len(self.channels),))
-        panels = self._nodes(kt, gg)
+        self._freezing = True  # the node set is kept: no shared work arrays
+        try:
+            panels = self._nodes(kt, gg)
+        finally:
+            self._freezing = False
         self._cap_cells = None
         if self.light.type == "bulb":  # restrict the cap table to the cells the nodes read
             cells = np.unique(np.concatenate([p[5].indices for p in panels]))
@@ -682,7 +727,10 @@ class SingleScattering:
         panels = self._frozen if self._frozen is not None else self._nodes(kt, g)
         total = np.zeros((len(self._h), len(kt)))
         tables = None
-        buf = np.empty(max(p[2].size for p in panels)) if panels else None
+        need = max((p[2].size for p in panels), default=0)
+        buf = getattr(self._work, "buf", None)
+        if buf is None or buf.size < need:
+            buf = self._work.buf = np.empty(need)
         if self.light.type == "bulb":
             r = self.light.radius
             cells = self._cap_cells if self._frozen is not None else None
@@ -692,8 +740,8 @@ class SingleScattering:
             rows = slice(None) if len(sel) == len(total) else sel  # all rays: no scatter
             for k, (ktk, gk) in enumerate(zip(kt, g)):
                 if mat is not None and ktk * self.light.radius <= CAP_A_MAX:
-                    expo = (mat @ tables[k]).reshape(path.shape)
-                    expo -= np.multiply(path, ktk, out=buf[: path.size].reshape(path.shape))
+                    expo = np.multiply(path, -ktk, out=buf[: path.size].reshape(path.shape))
+                    _matvec_add(mat, tables[k], expo.reshape(-1))  # log pbar - kt (d + s)
                     total[rows, k] += np.einsum("ij,ij->i", np.exp(expo, out=expo), weight)
                     continue
                 # HG with cos(theta) = +-cos w written without cancellation near the peak
