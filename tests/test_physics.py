@@ -224,8 +224,8 @@ def test_glow_is_linear_in_kappa_s_in_the_optically_thin_limit():
 def _exact_single_scattering(spec, x, y, kappa_a, kappa_s, g, *, n_s=800, n_mu=48, n_phi=64):
     """Single scattering from a Lambertian sphere of radiance 1, by brute quadrature.
 
-    A copy of tests/test_mitsuba_forward.py::exact_single_scattering (which Mitsuba matches),
-    kept here so that these tests need no Mitsuba: for rays through image points (x, y) the
+    Also used by tests/test_mitsuba_forward.py (Mitsuba matches it); it lives here so that
+    these tests need no Mitsuba: for rays through image points (x, y) the
     phase function and exp(-kappa_t l) are evaluated at every direction of the sphere's
     visible cap (l: distance to its surface), midpoint rules along the ray (equiangular) and
     over the cap (uniform in solid angle).
