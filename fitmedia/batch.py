@@ -194,18 +194,9 @@ def score_round(out: Path, medium_name: str, ml: Sequence[float]) -> list[Score]
     as :func:`fitmedia.validate.round_trip` does; used when a round's fit finished but
     its round.json was not written."""
     from .medium import medium_by_name
-    from .validate import SCORED, Score
+    from .validate import score_fit
 
-    truth = medium_by_name(medium_name).as_dict()
-    results = _read_json(out / "fit" / "results.json") or {}
-    scores = []
-    with np.load(out / "fit" / "samples.npz") as samples:
-        for ch in results.get("channels", []):
-            for q in SCORED:
-                s, t = samples[f"{ch}/{q}"], truth[q][ch]
-                scores.append(Score(medium_name, tuple(ml), ch, q, t, float(np.median(s)),
-                                    float(np.std(s)), float(np.mean(s < t))))
-    return scores
+    return score_fit(out / "fit", medium_by_name(medium_name), list(ml), name=medium_name)
 
 
 def _run_round(task: RoundTask) -> dict:

@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import logging
 import time
 from pathlib import Path
 
 from .inference.fit import FitOptions, prepare, run_channels
 from .inference.results import build_results, write_outputs
 from .spec import load_spec
-
-log = logging.getLogger(__name__)
 
 
 def fit(spec_path: str | Path, out_dir: str | Path, options: FitOptions = FitOptions(), *,

@@ -53,16 +53,24 @@ def round_trip(geometry: Spec, medium: Medium, ml: list[float], out_dir: str | P
     spec_path = synthesize(geometry, out / "capture", medium, list(ml), tank_ml=tank_ml, seed=seed,
                            medium_name=name or medium.name)
     opts = options or FitOptions(seed=seed, progress=False)
-    results = fit(spec_path, out / "fit", opts, report=False)
-    samples = np.load(out / "fit" / "samples.npz")
+    fit(spec_path, out / "fit", opts, report=False)
+    return score_fit(out / "fit", medium, ml, name=name or medium.name)
+
+
+def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str) -> list[Score]:
+    """Score a finished fit (``fit_dir`` with results.json and samples.npz) against ``truth``."""
+    import json
+
+    fit_dir = Path(fit_dir)
+    channels = json.loads((fit_dir / "results.json").read_text())["channels"]
+    values = truth.as_dict()
     scores = []
-    truth = medium.as_dict()
-    for ch in results["channels"]:
-        for q in SCORED:
-            s = samples[f"{ch}/{q}"]
-            t = truth[q][ch]
-            scores.append(Score(name or medium.name, tuple(ml), ch, q, t, float(np.median(s)),
-                                float(np.std(s)), float(np.mean(s < t))))
+    with np.load(fit_dir / "samples.npz") as samples:
+        for ch in channels:
+            for q in SCORED:
+                s, t = samples[f"{ch}/{q}"], values[q][ch]
+                scores.append(Score(name, tuple(ml), ch, q, t, float(np.median(s)),
+                                    float(np.std(s)), float(np.mean(s < t))))
     return scores
 
 

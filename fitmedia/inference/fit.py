@@ -7,7 +7,6 @@ pixels), so each channel is its own problem; they run in parallel processes.
 
 from __future__ import annotations
 
-import logging
 import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -23,8 +22,6 @@ from .likelihood import ChannelProblem, Observation
 from .optimize import find_map
 from .params import G_MAX, G_MIN, ChannelParams, ParameterSpace
 from .sample import run_chain
-
-log = logging.getLogger(__name__)
 
 
 @dataclass

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..spec import CHANNELS
 from ..util import save_npz, write_json
 
 from .fit import FitOptions, Prepared, prior_g_interval_width
@@ -126,10 +127,8 @@ def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results:
         if "chain" in f:
             write_inference_data(out_dir / f"posterior_{ch}.nc", f)
     imgs = {}
+    idx = [CHANNELS.index(c) for c in spec.channels]
     for i, im in enumerate(prep.images):
-        from ..spec import CHANNELS
-
-        idx = [CHANNELS.index(c) for c in spec.channels]
         imgs[f"data_{i}"] = im.data[..., idx]
         imgs[f"valid_{i}"] = im.valid[..., idx]
         imgs[f"model_{i}"] = np.stack([fits[c]["model_images"][i] for c in spec.channels], -1)
