@@ -22,7 +22,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from fitmedia.forward.single import SingleScattering, cap_table  # noqa: E402
+from fitmedia.forward.bulb_cap import cap_table  # noqa: E402
+from fitmedia.forward.single import SingleScattering  # noqa: E402
 from fitmedia.medium import medium_by_name  # noqa: E402
 from fitmedia.spec import load_spec  # noqa: E402
 

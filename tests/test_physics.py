@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import make_spec
 from scipy import integrate
 
 from fitmedia.forward.single import SingleScattering
 from fitmedia.geometry import fresnel_transmittance, refract_z, trace_to_water
 from fitmedia.medium import hg_phase
-from conftest import make_spec
 
 
 @pytest.mark.parametrize("g", [-0.5, 0.0, 0.3, 0.9, 0.99])
@@ -289,7 +289,7 @@ def test_ring_integral_is_the_complete_elliptic_integral():
     scipy.special.ellipe to 3e-8."""
     from scipy import special
 
-    from fitmedia.forward.single import _ellipe_1m
+    from fitmedia.forward.bulb_cap import _ellipe_1m
 
     rng = np.random.default_rng(1)
     for _ in range(8):
@@ -308,7 +308,7 @@ def test_cap_average_matches_2d_quadrature(g):
     """Independent reference: nested adaptive quadrature over the cap (beta, phi), the
     attenuation from the ray/sphere distance.  Peak outside, on the edge of and inside the cap;
     caps of 0.6 deg to a hemisphere; a = kappa_t r = 0 and 0.5.  Agreement to 1e-6."""
-    from fitmedia.forward.single import cap_average
+    from fitmedia.forward.bulb_cap import cap_average
 
     for theta in (0.002, 0.03, 0.2, 0.8, 1.5, 2.4, 3.1):
         for alpha in (0.01, 0.1, 0.5, 1.2, np.pi / 2 - 1e-9):
@@ -324,7 +324,7 @@ def test_cap_average_small_cap_limit(g):
     Z = sin^2(alpha/2), with the surface Laplacian of HG
     Delta_S p / p = 3 g (-2 mu / D + 5 g (1 - mu^2) / D^2), D = 1 + g^2 - 2 g mu (the
     derivative is also checked by finite differences)."""
-    from fitmedia.forward.single import cap_average
+    from fitmedia.forward.bulb_cap import cap_average
 
     theta = np.array([0.05, 0.2, 0.6, 1.2, 2.0, 2.8])
     mu = np.cos(theta)
@@ -353,7 +353,7 @@ def test_cap_table_interpolates_the_cap_average(g, a):
     a) against the direct quadrature, at random nodes of rays passing beyond r/0.6 (error of
     log pbar: median < 2e-4, 99th percentile < 5e-4), between r and r/0.6 and through the
     bulb (median < 4e-4, 99th percentile < 3e-3)."""
-    from fitmedia.forward.single import cap_average, cap_table
+    from fitmedia.forward.bulb_cap import cap_average, cap_table
 
     tab = cap_table()
     t = tab.table(g, a)

@@ -23,6 +23,7 @@ class ForwardModel(Protocol):
 
     channels: tuple[str, ...]
     shape: tuple[int, int]  # (H, W)
+    support: np.ndarray  # (H, W) bool: pixels whose footprint sees the tank's water
 
     def render(self, kappa_a: np.ndarray, kappa_s: np.ndarray, g: np.ndarray,
                brightness: np.ndarray) -> np.ndarray:

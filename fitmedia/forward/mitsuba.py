@@ -37,6 +37,7 @@ import time
 import numpy as np
 
 from ..errors import InputError
+from ..geometry import pixel_grid, trace_to_water
 from ..spec import Camera, Light, Spec
 
 log = logging.getLogger(__name__)
@@ -211,6 +212,9 @@ class MitsubaModel:
         self.camera, self.light = _geometry_of(spec, image_index)
         self.channels = tuple(channels or spec.channels)
         self.shape = (self.camera.height, self.camera.width)
+        x, y = pixel_grid(self.camera, sub=2)  # pixels whose footprint sees the water
+        rays = trace_to_water(self.camera, spec.tank, spec.medium_ior, np.ravel(x), np.ravel(y))
+        self.support = np.any(rays.factor.reshape(x.shape) > 0, axis=-1)
         self.spp, self.max_depth, self.seed = int(spp), int(max_depth), int(seed)
         self._mi = import_mitsuba(variant)
         self.variant = self._mi.variant()

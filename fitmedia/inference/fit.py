@@ -162,8 +162,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     obs = []
     for i, (d, v) in enumerate(zip(data, valid)):
         model = _model(spec, i, channel, options)
-        support = np.bincount(model._pix, minlength=d.size).reshape(d.shape) > 0
-        obs.append(Observation(model, d, v & support, spec.images[i].concentration))
+        obs.append(Observation(model, d, v & model.support, spec.images[i].concentration))
     free = brightness is None or brightness_rel_sd is not None
     guess_b = brightness if brightness is not None else float(
         np.max([np.percentile(d[v], 99.9) for d, v in zip(data, valid)]) / 0.5)
