@@ -4,7 +4,8 @@ in the posterior, coverage of credible intervals)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -12,8 +13,15 @@ import numpy as np
 from .inference.fit import FitOptions
 from .medium import Medium
 from .spec import Spec
+from .util import atomic_write, atomic_write_text, write_json
 
 SCORED = ("kappa_s", "kappa_t", "g")
+#: Central credible intervals whose coverage is reported.
+LEVELS = (0.68, 0.90, 0.99)
+#: Pass criteria: the 90 % intervals cover the truth in this fraction of the scores ...
+COVERAGE_90_RANGE = (0.85, 0.95)
+#: ... and the mean standardised bias z = (median - truth) / std is smaller than this.
+MAX_ABS_MEAN_Z = 0.2
 
 
 @dataclass
@@ -87,3 +95,116 @@ def coverage_table(scores: list[Score], levels=(0.68, 0.9, 0.99)) -> str:
         lines.append(f"{q:10s} {len(sel):4d} " + " ".join(f"{c:6.2f}" for c in cov)
                      + f"   {np.mean(z):+6.2f}  {np.mean(np.abs(z)):6.2f}")
     return "\n".join(lines)
+
+
+@dataclass
+class ValidationResult:
+    """What :func:`validate` found: ``rounds`` (one record per round: ``index``, ``medium``,
+    ``ml``, ``seed``, ``dir``, ``status`` ``"done"``, ``"done earlier"`` or ``"failed"`` with
+    ``error``), ``scores`` (per round, channel and quantity), ``coverage`` (coverage.json, see
+    :func:`coverage_summary`), ``table`` (coverage.txt) and the ``files`` written."""
+
+    rounds: list[dict]
+    scores: list[Score]
+    coverage: dict
+    table: str
+    files: list[Path] = field(default_factory=list)
+
+    @property
+    def passed(self) -> bool:
+        """True when every quantity meets the coverage and bias criteria."""
+        return bool(self.coverage["passed"])
+
+
+def _block(sel: list[Score], levels: Sequence[float]) -> dict:
+    z = np.array([s.z for s in sel], float)
+    fin = np.isfinite(z)
+    cov = {f"{round(100 * lv)}": float(np.mean([s.inside(lv) for s in sel])) for lv in levels}
+    return {"n": len(sel), "coverage": cov,
+            "coverage_90_standard_error": float(np.sqrt(0.9 * 0.1 / len(sel))),
+            "mean_z": float(np.mean(z[fin])) if fin.any() else None,
+            "mean_abs_z": float(np.mean(np.abs(z[fin]))) if fin.any() else None,
+            "n_infinite_z": int(np.sum(~fin))}
+
+
+def coverage_summary(scores: list[Score], levels: Sequence[float] = LEVELS) -> dict:
+    """Coverage of the central credible intervals and standardised bias with the criteria.
+
+    Returns
+    -------
+    dict
+        ``quantities.<q>`` and ``media.<medium>.<q>``, each with ``n`` (rounds x channels),
+        ``coverage`` (fraction of truths inside the central 68/90/99 % interval),
+        ``coverage_90_standard_error`` (binomial), ``mean_z``, ``mean_abs_z`` (z = (median -
+        truth) / posterior std, finite z only), ``n_infinite_z`` (std 0); ``criteria.<q>``
+        (``coverage_90_ok``, ``bias_ok``, ``passed``); ``passed``.
+    """
+    quantities = {q: _block([s for s in scores if s.quantity == q], levels)
+                  for q in SCORED if any(s.quantity == q for s in scores)}
+    media = {m: {q: _block([s for s in scores if s.medium == m and s.quantity == q], levels)
+                 for q in quantities}
+             for m in dict.fromkeys(s.medium for s in scores)}
+    criteria = {}
+    for q, b in quantities.items():
+        c90, mz = b["coverage"]["90"], b["mean_z"]
+        cov_ok = COVERAGE_90_RANGE[0] <= c90 <= COVERAGE_90_RANGE[1]
+        bias_ok = mz is not None and abs(mz) < MAX_ABS_MEAN_Z
+        criteria[q] = {"coverage_90_ok": cov_ok, "bias_ok": bias_ok, "passed": cov_ok and bias_ok}
+    return {"levels": list(levels), "quantities": quantities, "media": media,
+            "criteria": criteria, "criteria_definition": {
+                "coverage_90_range": list(COVERAGE_90_RANGE), "max_abs_mean_z": MAX_ABS_MEAN_Z},
+            "passed": bool(criteria) and all(c["passed"] for c in criteria.values())}
+
+
+def write_coverage(out: Path, rounds: list[dict], scores: list[Score]) -> ValidationResult:
+    """Write coverage.json, coverage.txt and coverage.png into ``out`` (atomically)."""
+    summary = coverage_summary(scores)
+    failed = [r for r in rounds if r["status"] == "failed"]
+    lines = [f"{len(rounds)} rounds, {len(failed)} failed; n counts rounds x channels", "",
+             coverage_table(scores, LEVELS) if scores else "(no scores)"]
+    for m in summary["media"]:
+        lines += ["", f"{m}:", coverage_table([s for s in scores if s.medium == m], LEVELS)]
+    lines += ["", (f"criteria: 90 % intervals cover in {COVERAGE_90_RANGE[0]:.0%}-"
+                   f"{COVERAGE_90_RANGE[1]:.0%} of the scores and |mean z| < {MAX_ABS_MEAN_Z}")]
+    for q, c in summary["criteria"].items():
+        lines.append(f"  {q:10s} {'pass' if c['passed'] else 'FAIL'}"
+                     + ("" if c["coverage_90_ok"] else "  (90 % coverage out of range)")
+                     + ("" if c["bias_ok"] else "  (|mean z| too large)"))
+    lines += [f"  round {r['index']} ({r['medium']}): {r['error']}" for r in failed]
+    table = "\n".join(lines) + "\n"
+    summary["rounds"] = [{k: v for k, v in r.items() if k != "scores"} for r in rounds]
+    files = [out / "coverage.json", out / "coverage.txt", out / "coverage.png"]
+    write_json(files[0], summary)
+    atomic_write_text(files[1], table)
+    atomic_write(files[2], lambda p: _coverage_figure(rounds).savefig(p, format="png"))
+    return ValidationResult(rounds, scores, summary, table, files)
+
+
+def _coverage_figure(rounds: list[dict]):
+    """Top: histogram of the truth's posterior quantile (PIT; uniform if calibrated) per
+    quantity, with the ±2σ Poisson band.  Bottom: z per round, coloured by channel."""
+    from matplotlib.ticker import MaxNLocator
+
+    from .report.plots import new_figure
+
+    fig = new_figure(11.0, 6.0)
+    axes = fig.subplots(2, len(SCORED), squeeze=False)
+    for k, q in enumerate(SCORED):
+        sel = [(r["index"], Score(**s)) for r in rounds for s in r.get("scores", [])
+               if s["quantity"] == q]
+        top, bottom, per_bin = axes[0, k], axes[1, k], len(sel) / 10
+        top.hist([s.pit for _, s in sel], bins=10, range=(0, 1), color="0.6", edgecolor="k")
+        top.axhline(per_bin, color="k", ls="--", lw=0.8)
+        top.axhspan(max(per_bin - 2 * np.sqrt(per_bin), 0), per_bin + 2 * np.sqrt(per_bin),
+                    color="k", alpha=0.1)
+        top.set_title(f"{q}: truth's posterior quantile (n = {len(sel)})", fontsize=9)
+        top.set(xlabel="PIT (unitless)", ylabel="scores per bin", ylim=(0, None))
+        for ch, colour in {"R": "tab:red", "G": "tab:green", "B": "tab:blue"}.items():
+            x, z = [i for i, s in sel if s.channel == ch], [s.z for _, s in sel if s.channel == ch]
+            bottom.plot(x, np.clip(z, -10, 10), "o", ms=3, color=colour, label=ch)
+        for y in (-2, -1, 0, 1, 2):
+            bottom.axhline(y, color="0.5", ls="-" if y == 0 else ":", lw=0.8)
+        bottom.set(xlabel="round", ylabel="z = (median - truth) / std (clipped ±10)")
+        bottom.xaxis.set_major_locator(MaxNLocator(integer=True))
+        bottom.legend(fontsize=7)
+    return fig

@@ -252,14 +252,14 @@ def test_coverage_summary_criteria():
     (criteria of docs/validation.md).  Posterior N(median, 1): PIT = Phi(truth - median)."""
     from scipy.stats import norm
 
-    from fitmedia.validate import Score
+    from fitmedia.validate import Score, coverage_summary
 
     z = np.random.default_rng(1).standard_normal(400)
     good = [Score("m", (8.0,), "R", "kappa_s", 1.0, 1.0 + e, 1.0, float(norm.cdf(-e))) for e in z]
     bad = [Score("m", (8.0,), "R", "kappa_s", 1.0, 1.5 + e, 1.0, float(norm.cdf(-e - 0.5)))
            for e in z]
-    cg = batch.coverage_summary(good)
+    cg = coverage_summary(good)
     assert cg["passed"], cg["quantities"]
     assert abs(cg["quantities"]["kappa_s"]["coverage"]["90"] - 0.9) < 0.05
-    cb = batch.coverage_summary(bad)
+    cb = coverage_summary(bad)
     assert not cb["passed"] and not cb["criteria"]["kappa_s"]["bias_ok"]
