@@ -7,7 +7,8 @@ same random numbers: single scattering (max_depth = single_scattering_depth) and
 glow (pixels that do not see the bulb and whose value is above 1e-3 of the brightest glow
 pixel), per channel.  The Monte Carlo standard error comes from 8 independent batches.
 
-Regenerate:  python docs/figures/make_ms_share.py   (writes ms_share.json and ms_share.png here)
+Regenerate:  python docs/figures/make_ms_share.py   (writes ms_share.json, ms_share_maps.npz and
+ms_share.png here; ``--plot-only`` redraws the figure from the two saved files)
 """
 
 from __future__ import annotations
@@ -58,41 +59,61 @@ def main() -> None:
                        "kappa_t_tank": float(m.kappa_t[k]), "albedo": float(m.albedo[k]),
                        "g": float(m.g[k])}
         out[f"{name} {ml} ml"] = res
-        g = 1
+        k = 0  # the red channel: every case has a glow there (Merlot's G and B have kappa_s = 0)
         with np.errstate(invalid="ignore", divide="ignore"):
-            maps[f"{name} {ml} ml"] = np.where(bulb[..., g], np.nan,
-                                               1 - s_img[..., g] / f_img[..., g])
+            maps[f"{name} {ml} ml"] = np.where(bulb[..., k], np.nan,
+                                               1 - s_img[..., k] / f_img[..., k])
         print(name, ml, {c: (None if v["share"] is None else round(v["share"], 3))
                          for c, v in res.items()}, flush=True)
     out["_settings"] = {"spp": SPP, "size": [96, 72], "variant": full.variant,
                         "definition": "1 - sum(single) / sum(all orders) over the glow pixels"}
     (HERE / "ms_share.json").write_text(json.dumps(out, indent=2) + "\n")
+    np.savez_compressed(HERE / "ms_share_maps.npz", names=np.array(list(maps)),
+                        maps=np.stack(list(maps.values())))
     plot(maps, out)
 
 
 def plot(maps: dict, out: dict) -> None:
+    """Maps of the red channel's share per pixel (own colour-bar axis), then the glow-summed
+    share per channel as bars."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(maps) + 1, figsize=(4 * (len(maps) + 1), 3.4))
-    for ax, (name, m) in zip(axes, maps.items()):
+    n = len(maps)
+    fig = plt.figure(figsize=(3.2 * n + 5.5, 3.6))
+    grid = fig.add_gridspec(1, n + 3, width_ratios=[1] * n + [0.06, 0.4, 1.5], wspace=0.15)
+    for k, (name, m) in enumerate(maps.items()):
+        ax = fig.add_subplot(grid[0, k])
         im = ax.imshow(m, vmin=0, vmax=1, cmap="magma")
-        ax.set_title(f"{name}\n(G) multiple / all", fontsize=9)
+        ax.set_title(f"{name}\n(R) multiple / all orders", fontsize=9)
         ax.axis("off")
-    fig.colorbar(im, ax=axes[:-1], fraction=0.02)
-    ax = axes[-1]
+    fig.colorbar(im, cax=fig.add_subplot(grid[0, n]), label="share (unitless)")
+    ax = fig.add_subplot(grid[0, n + 2])  # column n + 1: room for the colour bar's label
     names = list(maps)
     for k, (ch, col) in enumerate(zip("RGB", ("tab:red", "tab:green", "tab:blue"))):
-        vals = [out[n][ch]["share"] or 0.0 for n in names]
+        vals = [out[nm][ch]["share"] or 0.0 for nm in names]
         ax.bar(np.arange(len(names)) + (k - 1) * 0.27, vals, 0.27, color=col, label=ch)
-    ax.set_xticks(range(len(names)), [n.replace(" ", "\n", 1) for n in names], fontsize=7)
-    ax.set_ylabel("share of multiple scattering in the glow")
+    labels = []
+    for nm in names:  # "White Grapefruit Juice 160 ml" -> "Grapefruit\n160 ml"
+        liquid, vol, unit = nm.rsplit(" ", 2)
+        labels.append(f"{liquid.replace('White Grapefruit Juice', 'Grapefruit')}\n{vol} {unit}")
+    ax.set_xticks(range(len(names)), labels, fontsize=7)
+    ax.set_ylabel("multiple-scattering share of the glow", fontsize=8)
     ax.set_ylim(0, 1)
     ax.legend(fontsize=8)
     fig.savefig(HERE / "ms_share.png", dpi=110, bbox_inches="tight")
 
 
+def plot_saved() -> None:
+    out = json.loads((HERE / "ms_share.json").read_text())
+    with np.load(HERE / "ms_share_maps.npz") as f:
+        maps = dict(zip(f["names"].tolist(), f["maps"]))
+    plot(maps, out)
+
+
 if __name__ == "__main__":
-    main()
+    import sys
+
+    plot_saved() if "--plot-only" in sys.argv[1:] else main()
