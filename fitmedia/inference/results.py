@@ -51,6 +51,10 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
                 info["brightness_posterior"] = summarise(phys["brightness"], f["map"]["brightness"])
             g90 = params["g"][ch]["q95"] - params["g"][ch]["q05"]
             ks = params["kappa_s"][ch]
+            ka = params["kappa_a"][ch]
+            # kappa_a resolved: its 90 % interval spans less than a decade; else its shape is
+            # the prior's tail and only q95 (an upper limit) is a measurement
+            info["kappa_a_upper_limit_only"] = bool(not ka["q05"] > 0.1 * ka["q95"])
             info.update(converged=bool(f["converged"]), reason=f["reason"], n_steps=f["n_steps"],
                         autocorr_time=dict(zip(f["names"], np.asarray(f["tau"]).tolist())),
                         acceptance_fraction=f["acceptance"], burn_in=f["burn"], thin=f["thin"],
@@ -91,7 +95,7 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "options": {k: getattr(options, k) for k in ("robust", "n_walkers", "n_tau", "max_steps",
                                                      "global_evals", "mcmc")},
-        "priors": {"kappa_a, kappa_s": "log-uniform (flat in log kappa_t and logit albedo)",
+        "priors": {"kappa_t": "log-uniform", "albedo": "Beta(1/2, 1/2) (Jeffreys)",
                    "g": "uniform", "spec_overrides": spec.priors,
                    "bounds": {n: [lo, hi] for n, lo, hi in zip(
                        fits[spec.channels[0]]["names"], fits[spec.channels[0]]["space"].lower.tolist(),

@@ -215,6 +215,9 @@ def _channel_flags(results: dict, ch: str, samples: dict[str, np.ndarray] | None
         flags.append(G_UNCONSTRAINED)
     if info.get("kappa_s_consistent_with_zero") is True:
         flags.append(KS_ZERO)
+    if info.get("kappa_a_upper_limit_only") is True:
+        flags.append("&kappa;<sub>a</sub> not resolved (its 90 % interval spans more than a "
+                     "decade): read its q95 as an upper limit")
     if info.get("converged") is False:
         flags.append("sampler not converged: intervals unreliable")
     chi2 = _num(info.get("chi2_per_pixel"))
