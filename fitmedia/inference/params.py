@@ -8,9 +8,10 @@ Per channel the sampler sees
 * ``atanh_g``: atanh of the HG anisotropy,
 * ``log_brightness`` (only when the light's brightness is not calibrated).
 
-Priors (docs/inference.md): log-uniform (scale-invariant) in kappa_t; the
-Jeffreys prior Beta(1/2, 1/2) of the albedo (the probability that an interaction
-scatters), both inside the bounds; uniform in g on [G_MIN, G_MAX]; the brightness either normal in log around the clear-water
+Priors (docs/inference.md): flat in (log kappa_t, logit albedo) inside the
+bounds, which is the same as independent log-uniform (scale-invariant) priors on
+kappa_a and kappa_s (the Jacobian of that map is 1); uniform in g on
+[G_MIN, G_MAX]; the brightness either normal in log around the clear-water
 calibration (with the calibration's standard error) or log-uniform.  Flat vectors exist only at
 the optimizer / sampler boundary.
 """
@@ -20,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import expit, log_expit, logit
+from scipy.special import expit, logit
 
 LOG_KT_BOUNDS = (np.log(1e-5), np.log(1e3))  # undiluted kappa_t, 1/mm
 LOGIT_ALBEDO_BOUNDS = (-15.0, 15.0)
@@ -104,11 +105,8 @@ class ParameterSpace:
     def log_prior(self, u: np.ndarray) -> float:
         if np.any(u < self.lower) or np.any(u > self.upper) or not np.all(np.isfinite(u)):
             return -np.inf
-        # Jeffreys prior of the albedo (a Bernoulli probability: scatter or absorb), Beta(1/2, 1/2):
-        # density in logit albedo sqrt(albedo (1 - albedo))
-        lp = 0.5 * (log_expit(u[1]) + log_expit(-u[1]))
         # uniform in g: density in atanh g is 1 - tanh^2 = sech^2
-        lp -= 2.0 * np.log(np.cosh(u[2]))
+        lp = -2.0 * np.log(np.cosh(u[2]))
         if self.free_brightness and self.b_sd is not None:
             lp -= 0.5 * ((u[3] - self.log_b0) / self.b_sd) ** 2
         if self.background_sd is not None:

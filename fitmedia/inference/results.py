@@ -95,7 +95,7 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "options": {k: getattr(options, k) for k in ("robust", "n_walkers", "n_tau", "max_steps",
                                                      "global_evals", "mcmc")},
-        "priors": {"kappa_t": "log-uniform", "albedo": "Beta(1/2, 1/2) (Jeffreys)",
+        "priors": {"kappa_a, kappa_s": "log-uniform (flat in log kappa_t and logit albedo)",
                    "g": "uniform", "spec_overrides": spec.priors,
                    "bounds": {n: [lo, hi] for n, lo, hi in zip(
                        fits[spec.channels[0]]["names"], fits[spec.channels[0]]["space"].lower.tolist(),
