@@ -15,10 +15,14 @@ GRID = [("Lowfat Milk", 8), ("Regular Milk", 240), ("Espresso", 16),
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=False, reason=(
-    "open (issue 2): on 2026-11-22 at 64x48, seed 12345, Head & Shoulders 40 ml R put g at "
-    "z = +3.1 (PIT 0.0011) and the 68 % intervals of g covered 6 of 15; kappa_s, kappa_t "
-    "covered as expected.  Frozen vs adaptive quadrature nodes were ruled out (identical "
-    "log-posterior).  Not yet explained; the assertion below is unchanged."))
+    "open (issue 2): at 64x48, seed 12345, Head & Shoulders 40 ml R put g at z = +3.1 "
+    "(PIT 0.0011) and the 68 % intervals of g covered 6 of 15.  Ruled out on 2026-11-22: "
+    "frozen vs adaptive quadrature nodes (identical log-posterior); a model mismatch between "
+    "synth and fit (noise-free data fitted with a data-variance chi2 land within 0.08 sd of the "
+    "truth); the sampler (MAP and posterior median agree); Laplace z of atanh g over 20 fresh "
+    "noise draws of that case has sd 1.05.  The coverage run (docs/inference.md) shows a "
+    "prior-volume bias of kappa_t where kappa_a is unresolved; this g case is not explained "
+    "by it.  The assertion below is unchanged."))
 def test_round_trip_grid_recovers_truth_within_99_percent(tmp_path, seed):
     """Synthetic round trip: for each medium and dilution (8-240 ml in 23 l), every recovered
     kappa_s, kappa_t and g has the truth inside its central 99 % credible interval (from the
