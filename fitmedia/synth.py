@@ -50,6 +50,11 @@ def _render(spec: Spec, index: int | None, medium: Medium, brightness: np.ndarra
     return m.render(medium.kappa_a, medium.kappa_s, medium.g, brightness)
 
 
+def _with_water(tank: Medium, water_kappa_a: np.ndarray) -> Medium:
+    """The tank's medium plus the clear water's absorption (spec ``medium.water_kappa_a``)."""
+    return Medium(tank.kappa_a + water_kappa_a, tank.kappa_s, tank.g, tank.channels, tank.name)
+
+
 def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float], *,
                tank_ml: float = 23000.0, seed: int = 0, model: str = "single", spp: int = 256,
                brightness: float | list[float] | None = None, noise: CameraNoise = CameraNoise(),
@@ -79,9 +84,10 @@ def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float],
         raw["light"]["intensity"] = bright.tolist()  # a spot cannot be calibrated by a photo
     entries, truth_imgs = [], []
     sat_note = []
+    water = np.asarray(spec.water_kappa_a, float)  # the clear water's own absorption, 1/mm
     for k, v in enumerate(ml):
         c = v / tank_ml
-        tank_medium = medium.scaled(c)
+        tank_medium = _with_water(medium.scaled(c), water)
         clean = _render(spec, None, tank_medium, bright, model, spp, seed + 1000 + k)
         img = noise.apply(clean, rng)
         n_sat = int(np.sum(np.any(img >= SATURATION, axis=-1)))
@@ -93,7 +99,7 @@ def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float],
                         "saturation": SATURATION})
         truth_imgs.append({"path": name, "ml": v, "tank_ml": tank_ml, "concentration": c,
                            "tank": tank_medium.as_dict()})
-    clear = _render(spec, None, medium.scaled(0.0), bright, "single", spp, seed)
+    clear = _render(spec, None, _with_water(medium.scaled(0.0), water), bright, "single", spp, seed)
     write_float_tiff(out / "images/clear_water.tiff",
                      np.minimum(noise.apply(clear, rng), SATURATION).astype(np.float32))
     raw["images"] = entries
@@ -108,6 +114,7 @@ def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float],
         "brightness": dict(zip(CHANNELS, bright.tolist())),
         "brightness_meaning": "bulb radiance in the water" if light.type == "bulb"
         else "spot radiant intensity in the water (image units x mm^2)",
+        "water_kappa_a": dict(zip(CHANNELS, water.tolist())),
         "noise": {"gain": noise.gain, "read_var": noise.read_var}, "notes": sat_note,
         "units": {"length": "mm", "kappa": "1/mm"},
     })

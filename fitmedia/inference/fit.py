@@ -70,7 +70,11 @@ def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, floa
     relative standard error."""
     from ..forward.single import SingleScattering
 
-    unit = SingleScattering(spec, None, channels=spec.channels).render(0.0, 0.0, 0.0, 1.0)
+    # the clear water's own absorption (spec medium.water_kappa_a) attenuates the bulb in the
+    # clear-water photo too: the model of the photo includes it, so the radiance is the bulb's
+    water = np.array([spec.water_kappa_a[CHANNELS.index(c)] for c in spec.channels])
+    unit = SingleScattering(spec, None, channels=spec.channels).render(
+        water, np.zeros_like(water), np.zeros_like(water), np.ones_like(water))
     out, rel_sd = {}, {}
     src = spec.clear_water.paths[0]
     for k, ch in enumerate(spec.channels):
