@@ -76,3 +76,4 @@ def test_clear_water_absorption_fixed_in_spec(tmp_path, seed):
         assert res["parameters"]["kappa_t"][ch]["map"] == pytest.approx(milk.kappa_t[k], rel=0.02)
         assert res["parameters"]["g"][ch]["map"] == pytest.approx(milk.g[k], abs=0.01)
     assert res0["diagnostics"]["channels"]["R"]["brightness_calibrated"] < 0.97
+
