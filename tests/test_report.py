@@ -101,11 +101,22 @@ def test_report_flags_and_notes(fit_outputs, tmp_path):
     results["notes"] = ["image 0: 12 pixels saturated <and masked>"]
     results["diagnostics"]["channels"]["B"]["g_constrained"] = False
     results["diagnostics"]["channels"]["B"]["kappa_s_consistent_with_zero"] = True
+    results["diagnostics"]["channels"]["R"]["kappa_a_upper_limit_only"] = True
     (out / "results.json").write_text(json.dumps(results))
     text = write_report(out).read_text(encoding="ascii")
     assert "image 0: 12 pixels saturated &lt;and masked&gt;" in text
     assert "g unconstrained: the medium hardly scatters in this channel" in text
     assert "consistent with zero" in text
+    assert "read its q95 as an upper limit" in text
+
+
+def test_kappa_a_upper_limit_flag_follows_its_definition(fit_outputs):
+    """results.json's kappa_a_upper_limit_only is true exactly when kappa_a's 90 % interval
+    spans more than a decade (q95 > 10 q05), per channel (docs/results.md)."""
+    results = json.loads((fit_outputs["mcmc"] / "results.json").read_text())
+    for ch, info in results["diagnostics"]["channels"].items():
+        ka = results["parameters"]["kappa_a"][ch]
+        assert info["kappa_a_upper_limit_only"] is (ka["q95"] > 10 * ka["q05"])
 
 
 def test_report_map_only(fit_outputs, tmp_path):

@@ -24,6 +24,11 @@ from .params import G_MAX, G_MIN, ChannelParams, ParameterSpace
 from .sample import run_chain
 
 
+#: A second mode of g (the other sign) whose log posterior is within this of the MAP's makes the
+#: channel's chain "not converged": the sampler explores one mode (density ratio e^-5 = 0.7 %).
+OTHER_MODE_DELTA = 5.0
+
+
 @dataclass
 class FitOptions:
     model: str = "single"
@@ -198,7 +203,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     kt_hi = 3.0 * kt0  # from the bulb's attenuation, not from a possibly false global mode
     problem.adapt(space.to_vector(ChannelParams(kt_hi, 0.5, 0.97, guess_b if free else None)))
     starts = [res.x]
-    for g0 in (0.6, 0.9):
+    for g0 in (0.6, 0.9, -0.5):  # -0.5: the backward mode, so that it is always looked at
         for la in (0.0, 6.0):
             x = x0.copy()
             x[1], x[2] = np.clip(la, space.lower[1], space.upper[1]), np.clip(
@@ -216,16 +221,29 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
         problem.adapt(cand.x)
         cand.log_posterior = problem.log_posterior(cand.x)
     best = max(cands, key=lambda c: c.log_posterior)
+    # the best candidate scattering the other way (forward vs backward g), polished with its own
+    # nodes: the sampler explores the best mode only, so a close second mode is reported
+    other = [c for c in cands if np.tanh(c.x[2]) * np.tanh(best.x[2]) < 0]
+    alt = None
+    if other:
+        alt = max(other, key=lambda c: c.log_posterior)
+        problem.adapt(alt.x)
+        alt = find_map(problem.log_posterior, alt.x, space.lower, space.upper, global_evals=0,
+                       laplace=False)
+        n_evals += alt.n_evals
     # 3. nodes tuned at the optimum; polish; Laplace covariance
     problem.adapt(best.x)
     res = find_map(problem.log_posterior, best.x, space.lower, space.upper, global_evals=0)
     res.n_evals += n_evals
+    other_mode = None if alt is None else {
+        "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
+        "delta_log_posterior": float(alt.log_posterior - res.log_posterior)}
     out = {"channel": channel, "names": space.names, "x_map": res.x, "map_logp": res.log_posterior,
            "n_evals": res.n_evals, "laplace_cov": res.cov,
            "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
            "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
            "chi2_images": problem.chi2_images(res.x),
-           "free_brightness": free, "space": space}
+           "free_brightness": free, "space": space, "other_g_mode": other_mode}
     if options.mcmc:
         chain = run_chain(problem.log_posterior, res.x, res.cov, space.lower, space.upper, rng=rng,
                           checkpoint=checkpoint, resume=options.resume,
@@ -235,6 +253,12 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
                    tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
                    reason=chain.reason, burn=chain.burn, thin=chain.thin, chain=chain.chain,
                    ess=chain.ess, rhat=chain.rhat)
+        if other_mode is not None and other_mode["delta_log_posterior"] > -OTHER_MODE_DELTA:
+            out.update(converged=False, reason=(
+                f"a second mode at g = {other_mode['g']:.3g}, log posterior only "
+                f"{-other_mode['delta_log_posterior']:.2g} below the MAP's, was not sampled: the "
+                f"intervals describe the mode at g = {out['map']['g']:.3g} only; "
+                + chain.reason))
     return out
 
 

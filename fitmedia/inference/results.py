@@ -40,7 +40,8 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
                 "chi2_per_pixel": chi2 / max(n, 1), "n_pixels": n,
                 "brightness_calibrated": prep.brightness[ch],
                 "brightness_calibration_rel_sd": prep.brightness_rel_sd.get(ch),
-                "brightness": f["map"].get("brightness", prep.brightness[ch])}
+                "brightness": f["map"].get("brightness", prep.brightness[ch]),
+                "other_g_mode": f.get("other_g_mode")}
         if "samples" in f:
             u = f["samples"]
             space = f["space"]
