@@ -82,18 +82,20 @@ def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str)
     return scores
 
 
-def coverage_table(scores: list[Score], levels=(0.68, 0.9, 0.99)) -> str:
+def coverage_table(scores: list[Score], levels=LEVELS) -> str:
     """Per quantity: fraction of truths inside each central credible interval, mean z."""
+    return _table({q: _block([s for s in scores if s.quantity == q], levels)
+                   for q in SCORED if any(s.quantity == q for s in scores)}, levels)
+
+
+def _table(blocks: dict[str, dict], levels: Sequence[float]) -> str:
+    """The text table of per-quantity blocks (see :func:`_block`); z means over finite z."""
     lines = [f"{'quantity':10s} {'n':>4s} " + " ".join(f"{int(100 * lv):>5d}%" for lv in levels)
              + "   mean z  mean|z|"]
-    for q in SCORED:
-        sel = [s for s in scores if s.quantity == q]
-        if not sel:
-            continue
-        z = np.array([s.z for s in sel])
-        cov = [np.mean([s.inside(lv) for s in sel]) for lv in levels]
-        lines.append(f"{q:10s} {len(sel):4d} " + " ".join(f"{c:6.2f}" for c in cov)
-                     + f"   {np.mean(z):+6.2f}  {np.mean(np.abs(z)):6.2f}")
+    for q, b in blocks.items():
+        mz, maz = (np.nan if b[k] is None else b[k] for k in ("mean_z", "mean_abs_z"))
+        lines.append(f"{q:10s} {b['n']:4d} " + " ".join(f"{c:6.2f}" for c in b["coverage"].values())
+                     + f"   {mz:+6.2f}  {maz:6.2f}")
     return "\n".join(lines)
 
 
@@ -161,9 +163,9 @@ def write_coverage(out: Path, rounds: list[dict], scores: list[Score]) -> Valida
     summary = coverage_summary(scores)
     failed = [r for r in rounds if r["status"] == "failed"]
     lines = [f"{len(rounds)} rounds, {len(failed)} failed; n counts rounds x channels", "",
-             coverage_table(scores, LEVELS) if scores else "(no scores)"]
-    for m in summary["media"]:
-        lines += ["", f"{m}:", coverage_table([s for s in scores if s.medium == m], LEVELS)]
+             _table(summary["quantities"], LEVELS) if scores else "(no scores)"]
+    for m, blocks in summary["media"].items():
+        lines += ["", f"{m}:", _table(blocks, LEVELS)]
     lines += ["", (f"criteria: 90 % intervals cover in {COVERAGE_90_RANGE[0]:.0%}-"
                    f"{COVERAGE_90_RANGE[1]:.0%} of the scores and |mean z| < {MAX_ABS_MEAN_Z}")]
     for q, c in summary["criteria"].items():
