@@ -175,7 +175,8 @@ def score_round(out: Path, medium_name: str, ml: Sequence[float]) -> list[Score]
     from .medium import medium_by_name
     from .validate import score_fit
 
-    return score_fit(out / "fit", medium_by_name(medium_name), list(ml), name=medium_name)
+    return score_fit(out / "fit", medium_by_name(medium_name), list(ml), name=medium_name,
+                     spec=out / "capture" / "capture.yaml")
 
 
 def _run_round(task: RoundTask) -> dict:
@@ -222,7 +223,20 @@ def _finished_round(task: RoundTask) -> dict | None:
         diff = ", ".join(f"{k} {theirs[k]!r} (now {mine[k]!r})" for k in mine if theirs[k] != mine[k])
         raise InputError(f"--out: {task.out} holds a finished round with {diff}; "
                          "use a new --out folder or the same settings")
+    scores = rec.get("scores") or []
+    if any(s.get("optical_depth") is None for s in scores):
+        # scored before scores carried the optical depth: score it again from its files
+        rec["scores"] = [asdict(s) for s in score_round(Path(task.out), task.medium, task.ml)]
+        write_json(Path(task.out) / "round.json", {**rec, "status": "done"})
     return {**rec, "status": "done earlier"}
+
+
+def _score(d: dict):
+    """A :class:`~fitmedia.validate.Score` from its round.json record (lists back to tuples)."""
+    from .validate import Score
+
+    tau = d.get("optical_depth")
+    return Score(**{**d, "ml": tuple(d["ml"]), "optical_depth": None if tau is None else tuple(tau)})
 
 
 def _is_int(x: Any, lowest: int) -> bool:
@@ -299,7 +313,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     """
     from .inference.fit import FitOptions
     from .spec import load_spec
-    from .validate import Score, write_coverage
+    from .validate import write_coverage
 
     options = options or FitOptions()
     names = _check_validate_args(media, rounds, ml, seed, tank_ml, options)
@@ -325,7 +339,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
                     progress=options.progress, desc="rounds", done=len(records))
     records.update({r["index"]: r for r in ran})
     ordered = [records[i] for i in range(rounds)]
-    scores = [Score(**{**s, "ml": tuple(s["ml"])}) for r in ordered for s in r.get("scores", [])]
+    scores = [_score(s) for r in ordered for s in r.get("scores", [])]
     return write_coverage(out, ordered, scores)
 
 

@@ -22,6 +22,11 @@ LEVELS = (0.68, 0.90, 0.99)
 COVERAGE_90_RANGE = (0.85, 0.95)
 #: ... and the mean standardised bias z = (median - truth) / std is smaller than this.
 MAX_ABS_MEAN_Z = 0.2
+#: Optical depth (tank's kappa_t x the light-to-front-wall distance) that separates the
+#: capture's regimes (docs/validation.md): below the first, the light is barely dimmed and the
+#: absorption is not resolved; above the second, the light is hidden and g is not constrained.
+INFORMATIVE_OPTICAL_DEPTH = (0.1, 10.0)
+REGIMES = ("thin", "informative", "dense")
 
 
 @dataclass
@@ -34,6 +39,21 @@ class Score:
     median: float
     std: float
     pit: float  # fraction of posterior samples below the truth
+    #: per image: the tank's kappa_t (truth, this channel) x the light-to-front-wall distance
+    optical_depth: tuple[float, ...] | None = None
+
+    @property
+    def regime(self) -> str | None:
+        """'thin', 'informative' or 'dense' (:data:`INFORMATIVE_OPTICAL_DEPTH`): 'thin' or
+        'dense' when every image is; None when the optical depth is not known."""
+        if not self.optical_depth:
+            return None
+        lo, hi = INFORMATIVE_OPTICAL_DEPTH
+        if max(self.optical_depth) < lo:
+            return "thin"
+        if min(self.optical_depth) > hi:
+            return "dense"
+        return "informative"
 
     @property
     def z(self) -> float:
@@ -62,23 +82,45 @@ def round_trip(geometry: Spec, medium: Medium, ml: list[float], out_dir: str | P
                            medium_name=name or medium.name)
     opts = options or FitOptions(seed=seed, progress=False)
     fit(spec_path, out / "fit", opts, report=False)
-    return score_fit(out / "fit", medium, ml, name=name or medium.name)
+    return score_fit(out / "fit", medium, ml, name=name or medium.name, spec=spec_path)
 
 
-def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str) -> list[Score]:
-    """Score a finished fit (``fit_dir`` with results.json and samples.npz) against ``truth``."""
+def optical_depths(spec: Spec, truth: Medium, channel: str) -> tuple[float, ...]:
+    """Per image of ``spec``: the tank's extinction in ``channel`` (``truth`` at the image's
+    concentration plus the clear water's absorption) times the distance from the light's
+    centre to the inside of the front wall, mm."""
+    from .spec import CHANNELS
+
+    ci = CHANNELS.index(channel)
+    kt = float(np.asarray(truth.kappa_a)[ci] + np.asarray(truth.kappa_s)[ci])
+    out = []
+    for i, entry in enumerate(spec.images):
+        dist = float(spec.tank.half[2] - spec.light_for(i).position[2])
+        out.append((kt * entry.concentration + spec.water_kappa_a[ci]) * dist)
+    return tuple(out)
+
+
+def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str,
+              spec: Spec | str | Path | None = None) -> list[Score]:
+    """Score a finished fit (``fit_dir`` with results.json and samples.npz) against ``truth``;
+    with the capture's ``spec`` (or its path) each score also carries the optical depths."""
     import json
+
+    from .spec import load_spec
 
     fit_dir = Path(fit_dir)
     channels = json.loads((fit_dir / "results.json").read_text())["channels"]
+    if spec is not None and not isinstance(spec, Spec):
+        spec = load_spec(spec)
     values = truth.as_dict()
     scores = []
     with np.load(fit_dir / "samples.npz") as samples:
         for ch in channels:
+            tau = optical_depths(spec, truth, ch) if spec is not None else None
             for q in SCORED:
                 s, t = samples[f"{ch}/{q}"], values[q][ch]
                 scores.append(Score(name, tuple(ml), ch, q, t, float(np.median(s)),
-                                    float(np.std(s)), float(np.mean(s < t))))
+                                    float(np.std(s)), float(np.mean(s < t)), tau))
     return scores
 
 
@@ -146,6 +188,9 @@ def coverage_summary(scores: list[Score], levels: Sequence[float] = LEVELS) -> d
     media = {m: {q: _block([s for s in scores if s.medium == m and s.quantity == q], levels)
                  for q in quantities}
              for m in dict.fromkeys(s.medium for s in scores)}
+    regimes = {r: {q: _block([s for s in scores if s.regime == r and s.quantity == q], levels)
+                   for q in quantities if any(s.regime == r and s.quantity == q for s in scores)}
+               for r in REGIMES if any(s.regime == r for s in scores)}
     criteria = {}
     for q, b in quantities.items():
         c90, mz = b["coverage"]["90"], b["mean_z"]
@@ -153,6 +198,11 @@ def coverage_summary(scores: list[Score], levels: Sequence[float] = LEVELS) -> d
         bias_ok = mz is not None and abs(mz) < MAX_ABS_MEAN_Z
         criteria[q] = {"coverage_90_ok": cov_ok, "bias_ok": bias_ok, "passed": cov_ok and bias_ok}
     return {"levels": list(levels), "quantities": quantities, "media": media,
+            "regimes": regimes, "regime_definition": {
+                "optical_depth": "tank kappa_t x distance from the light to the front wall",
+                "thin": f"every image below {INFORMATIVE_OPTICAL_DEPTH[0]:g}",
+                "dense": f"every image above {INFORMATIVE_OPTICAL_DEPTH[1]:g}",
+                "informative": "otherwise"},
             "criteria": criteria, "criteria_definition": {
                 "coverage_90_range": list(COVERAGE_90_RANGE), "max_abs_mean_z": MAX_ABS_MEAN_Z},
             "passed": bool(criteria) and all(c["passed"] for c in criteria.values())}
@@ -166,6 +216,11 @@ def write_coverage(out: Path, rounds: list[dict], scores: list[Score]) -> Valida
              _table(summary["quantities"], LEVELS) if scores else "(no scores)"]
     for m, blocks in summary["media"].items():
         lines += ["", f"{m}:", _table(blocks, LEVELS)]
+    lo, hi = INFORMATIVE_OPTICAL_DEPTH
+    what = {"thin": f"optical depth light-to-wall < {lo:g}", "dense": f"> {hi:g}",
+            "informative": f"{lo:g}-{hi:g}"}
+    for r, blocks in summary["regimes"].items():
+        lines += ["", f"regime {r} ({what[r]}):", _table(blocks, LEVELS)]
     lines += ["", (f"criteria: 90 % intervals cover in {COVERAGE_90_RANGE[0]:.0%}-"
                    f"{COVERAGE_90_RANGE[1]:.0%} of the scores and |mean z| < {MAX_ABS_MEAN_Z}")]
     for q, c in summary["criteria"].items():

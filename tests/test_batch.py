@@ -263,3 +263,37 @@ def test_coverage_summary_criteria():
     assert abs(cg["quantities"]["kappa_s"]["coverage"]["90"] - 0.9) < 0.05
     cb = coverage_summary(bad)
     assert not cb["passed"] and not cb["criteria"]["kappa_s"]["bias_ok"]
+
+
+def test_optical_depth_regimes():
+    """The optical depth that sorts scores into regimes, against a hand computation: the
+    canonical tank is 300 mm deep and the bulb sits at z = 30 mm, so the light-to-wall distance
+    is 150 - 30 = 120 mm; the tank's kappa_t is the liquid's times ml / tank ml plus the water's
+    absorption.  Boundaries: 'thin' and 'dense' only when every image is."""
+    from conftest import make_spec
+
+    from fitmedia.medium import medium_by_name
+    from fitmedia.spec import parse_spec
+    from fitmedia.validate import INFORMATIVE_OPTICAL_DEPTH, Score, coverage_summary, optical_depths
+
+    med = medium_by_name("Espresso")
+    d = geometry_dict(width=16, height=12)
+    d["medium"]["water_kappa_a"] = [1e-3, 0.0, 0.0]
+    d["images"] = [{"path": "a.tiff", "exposure_s": 1.0, "concentration": 8 / 23000},
+                   {"path": "b.tiff", "exposure_s": 1.0, "concentration": 240 / 23000}]
+    spec = parse_spec(d, require_images=False)
+    kt_r = med.as_dict()["kappa_t"]["R"]
+    tau = optical_depths(spec, med, "R")
+    assert tau == pytest.approx([(kt_r * 8 / 23000 + 1e-3) * 120, (kt_r * 240 / 23000 + 1e-3) * 120])
+    assert make_spec().tank.half[2] == 150.0
+    lo, hi = INFORMATIVE_OPTICAL_DEPTH
+
+    def score(t):
+        return Score("m", (8.0,), "R", "g", 0.9, 0.9, 0.01, 0.5, t)
+
+    assert score((0.5 * lo,)).regime == "thin"
+    assert score((0.5 * lo, 2 * lo)).regime == "informative"
+    assert score((2 * hi,)).regime == "dense"
+    assert score(None).regime is None
+    summary = coverage_summary([score((0.5 * lo,)), score((1.0,)), score((1.0,)), score(None)])
+    assert {r: b["g"]["n"] for r, b in summary["regimes"].items()} == {"thin": 1, "informative": 2}
