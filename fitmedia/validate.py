@@ -12,6 +12,7 @@ import numpy as np
 
 from .inference.fit import FitOptions
 from .medium import Medium
+from .regimes import INFORMATIVE_OPTICAL_DEPTH, REGIMES, regime, tank_optical_depths
 from .spec import Spec
 from .util import atomic_write, atomic_write_text, write_json
 
@@ -22,11 +23,6 @@ LEVELS = (0.68, 0.90, 0.99)
 COVERAGE_90_RANGE = (0.85, 0.95)
 #: ... and the mean standardised bias z = (median - truth) / std is smaller than this.
 MAX_ABS_MEAN_Z = 0.2
-#: Optical depth (tank's kappa_t x the light-to-front-wall distance) that separates the
-#: capture's regimes (docs/validation.md): below the first, the light is barely dimmed and the
-#: absorption is not resolved; above the second, the light is hidden and g is not constrained.
-INFORMATIVE_OPTICAL_DEPTH = (0.1, 10.0)
-REGIMES = ("thin", "informative", "dense")
 
 
 @dataclass
@@ -44,16 +40,8 @@ class Score:
 
     @property
     def regime(self) -> str | None:
-        """'thin', 'informative' or 'dense' (:data:`INFORMATIVE_OPTICAL_DEPTH`): 'thin' or
-        'dense' when every image is; None when the optical depth is not known."""
-        if not self.optical_depth:
-            return None
-        lo, hi = INFORMATIVE_OPTICAL_DEPTH
-        if max(self.optical_depth) < lo:
-            return "thin"
-        if min(self.optical_depth) > hi:
-            return "dense"
-        return "informative"
+        """'thin', 'informative' or 'dense' (:func:`fitmedia.regimes.regime`)."""
+        return regime(self.optical_depth)
 
     @property
     def z(self) -> float:
@@ -92,12 +80,8 @@ def optical_depths(spec: Spec, truth: Medium, channel: str) -> tuple[float, ...]
     from .spec import CHANNELS
 
     ci = CHANNELS.index(channel)
-    kt = float(np.asarray(truth.kappa_a)[ci] + np.asarray(truth.kappa_s)[ci])
-    out = []
-    for i, entry in enumerate(spec.images):
-        dist = float(spec.tank.half[2] - spec.light_for(i).position[2])
-        out.append((kt * entry.concentration + spec.water_kappa_a[ci]) * dist)
-    return tuple(out)
+    return tank_optical_depths(spec, float(np.asarray(truth.kappa_a)[ci]
+                                           + np.asarray(truth.kappa_s)[ci]), ci)
 
 
 def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str,

@@ -102,8 +102,12 @@ def test_report_flags_and_notes(fit_outputs, tmp_path):
     results["diagnostics"]["channels"]["B"]["g_constrained"] = False
     results["diagnostics"]["channels"]["B"]["kappa_s_consistent_with_zero"] = True
     results["diagnostics"]["channels"]["R"]["kappa_a_upper_limit_only"] = True
+    results["diagnostics"]["channels"]["R"]["optical_depth_regime"] = "thin"
+    results["diagnostics"]["channels"]["G"]["optical_depth_regime"] = "dense"
     (out / "results.json").write_text(json.dumps(results))
     text = write_report(out).read_text(encoding="ascii")
+    assert "too dilute: optical depth light-to-wall below 0.1" in text
+    assert "too dense: optical depth light-to-wall above 10" in text
     assert "image 0: 12 pixels saturated &lt;and masked&gt;" in text
     assert "g unconstrained: the medium hardly scatters in this channel" in text
     assert "consistent with zero" in text
@@ -117,6 +121,23 @@ def test_kappa_a_upper_limit_flag_follows_its_definition(fit_outputs):
     for ch, info in results["diagnostics"]["channels"].items():
         ka = results["parameters"]["kappa_a"][ch]
         assert info["kappa_a_upper_limit_only"] is (ka["q95"] > 10 * ka["q05"])
+
+
+def test_optical_depth_in_results(fit_outputs):
+    """results.json's optical depth light-to-wall per image and channel, against a hand
+    computation from the fitted kappa_t: concentration x kappa_t x (150 - 30) mm for the
+    canonical tank (300 mm deep, bulb at z = 30 mm, no water absorption), and its regime."""
+    from fitmedia.regimes import regime
+
+    for kind in ("mcmc", "map"):
+        results = json.loads((fit_outputs[kind] / "results.json").read_text())
+        for ch, info in results["diagnostics"]["channels"].items():
+            kt = results["parameters"]["kappa_t"][ch]
+            kt = kt.get("median", kt["map"])
+            taus = [im["channels"][ch]["optical_depth_light_to_wall"] for im in results["images"]]
+            expect = [im["concentration"] * kt * 120.0 for im in results["images"]]
+            assert taus == pytest.approx(expect, rel=1e-9)
+            assert info["optical_depth_regime"] == regime(taus)
 
 
 def test_report_map_only(fit_outputs, tmp_path):

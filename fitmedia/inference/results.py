@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..regimes import regime, tank_optical_depths
 from ..spec import CHANNELS
 from ..util import save_npz, write_json
-
 from .fit import FitOptions, Prepared, prior_g_interval_width
 
 QUANTITIES = ("kappa_a", "kappa_s", "g", "kappa_t", "albedo")
@@ -77,12 +77,19 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
             diag.update(rhat_max=max(max(chans[c]["rhat"].values()) for c in spec.channels),
                         ess_bulk_min=min(min(chans[c]["ess_bulk"].values()) for c in spec.channels))
     diag["channels"] = chans
+    # optical depth light-to-wall per image from the fitted kappa_t (posterior median, else MAP)
+    taus = {}
+    for ch in spec.channels:
+        kt = params["kappa_t"][ch].get("median", params["kappa_t"][ch]["map"])
+        taus[ch] = tank_optical_depths(spec, float(kt), CHANNELS.index(ch))
+        chans[ch]["optical_depth_regime"] = regime(taus[ch])
     images = []
     for i, (entry, im) in enumerate(zip(spec.images, prep.images)):
         per = {}
         for ch in spec.channels:
             c2, n = fits[ch]["chi2_images"][i]
-            per[ch] = {"n_pixels_used": n, "chi2_per_pixel_map": c2 / max(n, 1)}
+            per[ch] = {"n_pixels_used": n, "chi2_per_pixel_map": c2 / max(n, 1),
+                       "optical_depth_light_to_wall": taus[ch][i]}
         images.append({"path": [str(p) for p in entry.paths], "concentration": entry.concentration,
                        "n_saturated": im.n_saturated, "n_masked": im.n_masked, "channels": per})
     return {

@@ -20,6 +20,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputError
+from ..regimes import INFORMATIVE_OPTICAL_DEPTH
 from ..util import atomic_write_text
 from .plots import finite_or_none as _num
 from .plots import prior_bound_flags
@@ -218,6 +219,15 @@ def _channel_flags(results: dict, ch: str, samples: dict[str, np.ndarray] | None
     if info.get("kappa_a_upper_limit_only") is True:
         flags.append("&kappa;<sub>a</sub> not resolved (its 90 % interval spans more than a "
                      "decade): read its q95 as an upper limit")
+    lo, hi = INFORMATIVE_OPTICAL_DEPTH
+    if info.get("optical_depth_regime") == "thin":
+        flags.append(f"too dilute: optical depth light-to-wall below {lo:g} in every image; the "
+                     "intervals of &kappa;<sub>t</sub> and &kappa;<sub>a</sub> follow the prior "
+                     "more than the data (docs/validation.md); add liquid")
+    elif info.get("optical_depth_regime") == "dense":
+        flags.append(f"too dense: optical depth light-to-wall above {hi:g} in every image; the "
+                     "light is hidden and g's interval follows the prior (docs/validation.md); "
+                     "dilute")
     if info.get("converged") is False:
         flags.append("sampler not converged: intervals unreliable")
     chi2 = _num(info.get("chi2_per_pixel"))
