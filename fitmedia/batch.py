@@ -156,14 +156,15 @@ def _read_json(path: Path) -> dict | None:
 # validation
 
 
-def round_seed_and_ml(seed: int, index: int, ml: Sequence[float] | None) -> tuple[int, tuple]:
+def round_seed_and_ml(seed: int, index: int, ml: Sequence[float] | None,
+                      ml_range: tuple[float, float] = ML_RANGE) -> tuple[int, tuple]:
     """The seed of round ``index`` and its ml (``ml`` if given, else one volume drawn
-    log-uniformly in :data:`ML_RANGE`, to 0.1 ml), both from ``SeedSequence([seed, index])``
+    log-uniformly in ``ml_range``, to 0.1 ml), both from ``SeedSequence([seed, index])``
     so they depend on the round's number only, not on the scheduling or the number of rounds."""
     rng = np.random.default_rng(np.random.SeedSequence([seed, index]))
     round_seed = int(rng.integers(2**31 - 1))
     if ml is None:
-        drawn = float(np.exp(rng.uniform(np.log(ML_RANGE[0]), np.log(ML_RANGE[1]))))
+        drawn = float(np.exp(rng.uniform(np.log(ml_range[0]), np.log(ml_range[1]))))
         return round_seed, (round(drawn, 1),)
     return round_seed, tuple(float(v) for v in ml)
 
@@ -272,10 +273,33 @@ def _check_validate_args(media: list[str], rounds: int, ml: list[float] | None, 
     return names
 
 
+def ml_range_for_optical_depth(spec, medium_name: str, optical_depth: tuple[float, float],
+                               tank_ml: float, channel: str = "G") -> tuple[float, float]:
+    """The ml of ``medium_name`` in ``tank_ml`` that put the tank's optical depth light-to-wall
+    (``fitmedia.regimes``, in ``channel``, with the spec's water absorption) at the ends of
+    ``optical_depth``; ml log-uniform in this range is optical depth log-uniform in its range."""
+    from .medium import medium_by_name
+    from .regimes import light_to_wall_mm
+    from .spec import CHANNELS
+
+    ci = CHANNELS.index(channel)
+    med = medium_by_name(medium_name)
+    kt = float(np.asarray(med.kappa_a)[ci] + np.asarray(med.kappa_s)[ci])
+    dist = light_to_wall_mm(spec, None)
+    water = spec.water_kappa_a[ci] * dist
+    lo, hi = (tank_ml * (t - water) / (kt * dist) for t in optical_depth)
+    if not 0 < lo < hi < tank_ml:
+        raise InputError(f"--optical-depth: {optical_depth[0]:g}-{optical_depth[1]:g} needs "
+                         f"{lo:.3g}-{hi:.3g} ml of {medium_name} in {tank_ml:g} ml, not possible "
+                         "with this spec's water absorption and tank")
+    return lo, hi
+
+
 def validate(media: list[str], rounds: int, out_dir: str | Path, *,
              ml: list[float] | None = None, geometry: str | Path | None = None, seed: int = 0,
              scheduler: str | None = None, n_workers: int = 2,
-             options: FitOptions | None = None, tank_ml: float = 23000.0) -> ValidationResult:
+             options: FitOptions | None = None, tank_ml: float = 23000.0,
+             optical_depth: tuple[float, float] | None = None) -> ValidationResult:
     """Synthetic round trips (synth -> fit) spread over ``media``, scored for coverage.
 
     Parameters
@@ -306,6 +330,10 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
         ``workers`` 1, ``progress`` False.  ``options.progress`` shows a bar over the rounds.
     tank_ml : float
         Water in the tank, ml.
+    optical_depth : (lo, hi), optional
+        Instead of 8-240 ml, draw each round's ml so that the G channel's optical depth
+        light-to-wall (:mod:`fitmedia.regimes`) is log-uniform in ``lo``-``hi``: a capture
+        planned for a regime (docs/validation.md).  Not with ``ml``.
 
     Returns
     -------
@@ -321,12 +349,20 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     geo = Path(geometry) if geometry is not None else DEFAULT_GEOMETRY
     if geometry is None and not geo.is_file():
         raise InputError(f"--spec: not given, and the default {geo} is not there")
-    load_spec(geo, require_images=False)  # bad geometry fails here, before any round
+    geo_spec = load_spec(geo, require_images=False)  # bad geometry fails here, before any round
+    ranges = {n: ML_RANGE for n in names}
+    if optical_depth is not None:
+        if ml is not None:
+            raise InputError("--optical-depth: not with --ml (it chooses the ml)")
+        lo, hi = (float(t) for t in optical_depth)
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+            raise InputError(f"--optical-depth: got {lo:g} {hi:g}: expected 0 < LO < HI")
+        ranges = {n: ml_range_for_optical_depth(geo_spec, n, (lo, hi), tank_ml) for n in names}
     sha = hashlib.sha256(geo.read_bytes()).hexdigest()
     out = Path(out_dir).resolve()
     tasks, records = [], {}
     for i in range(rounds):
-        rseed, rml = round_seed_and_ml(seed, i, ml)
+        rseed, rml = round_seed_and_ml(seed, i, ml, ranges[names[i % len(names)]])
         task = RoundTask(i, names[i % len(names)], rml, rseed, str(geo.resolve()), sha,
                          float(tank_ml), str(out / f"round_{i:04d}"),
                          replace(options, seed=rseed, workers=1, progress=False, resume=False))
@@ -474,6 +510,9 @@ def add_validate_parser(sub) -> None:
     p.add_argument("--ml", type=_finite, nargs="+", default=None,
                    help="ml per image of every round (default: drawn in 8-240 per round)")
     p.add_argument("--tank-ml", type=_finite, default=23000.0)
+    p.add_argument("--optical-depth", type=_finite, nargs=2, default=None, metavar=("LO", "HI"),
+                   help="draw each round's ml so that the G channel's optical depth from the "
+                        "light to the front wall is log-uniform in LO-HI (instead of 8-240 ml)")
     _add_runner_args(p)
     p.set_defaults(func=cmd_validate)
 
@@ -482,7 +521,7 @@ def cmd_validate(a) -> int:
     """Exit code 0 when the criteria are met, 1 when not (the table says which)."""
     res = validate(a.media, a.rounds, a.out, ml=a.ml, geometry=a.spec, seed=a.seed,
                    scheduler=a.scheduler, n_workers=a.workers, options=_fit_options(a),
-                   tank_ml=a.tank_ml)
+                   tank_ml=a.tank_ml, optical_depth=a.optical_depth)
     print(res.table, end="")
     print(f"wrote {', '.join(str(f) for f in res.files)}")
     return 0 if res.passed else 1

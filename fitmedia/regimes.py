@@ -15,9 +15,11 @@ INFORMATIVE_OPTICAL_DEPTH = (0.1, 10.0)
 REGIMES = ("thin", "informative", "dense")
 
 
-def light_to_wall_mm(spec, index: int) -> float:
-    """Distance (mm) from image ``index``'s light centre to the inside of the front wall."""
-    return float(spec.tank.half[2] - spec.light_for(index).position[2])
+def light_to_wall_mm(spec, index: int | None) -> float:
+    """Distance (mm) from image ``index``'s light centre (None: the spec's light) to the
+    inside of the front wall."""
+    light = spec.light if index is None else spec.light_for(index)
+    return float(spec.tank.half[2] - light.position[2])
 
 
 def tank_optical_depths(spec, kappa_t: float, channel_index: int) -> tuple[float, ...]:

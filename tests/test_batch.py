@@ -120,6 +120,32 @@ def test_round_seeds_depend_on_seed_and_index_only():
     assert round_seed_and_ml(3, 1, [16])[0] == a[1][0]
 
 
+def test_optical_depth_design_draws_ml_for_the_regime():
+    """--optical-depth LO HI: every round's ml puts the truth's G-channel optical depth
+    light-to-wall (fitmedia.regimes) inside LO-HI, and log-uniformly: the drawn depths' log
+    mean is near the middle (a Kolmogorov-Smirnov test against log-uniform, 400 draws)."""
+    from scipy.stats import kstest
+
+    from fitmedia.batch import ml_range_for_optical_depth
+    from fitmedia.medium import medium_by_name
+    from fitmedia.spec import parse_spec
+    from fitmedia.validate import optical_depths
+
+    spec = parse_spec(geometry_dict(width=16, height=12), require_images=False)
+    med = medium_by_name("Espresso")
+    rng_ml = ml_range_for_optical_depth(spec, "Espresso", (0.1, 10.0), 23000.0)
+    taus = []
+    for i in range(400):
+        _, (ml,) = round_seed_and_ml(5, i, None, rng_ml)
+        d = geometry_dict(width=16, height=12)
+        d["images"] = [{"path": "a.tiff", "exposure_s": 1.0, "concentration": ml / 23000}]
+        taus.append(optical_depths(parse_spec(d, require_images=False), med, "G")[0])
+    taus = np.array(taus)
+    assert np.all((taus > 0.1 * 0.99) & (taus < 10.0 * 1.01))  # 0.1 ml rounding
+    u = (np.log(taus) - np.log(0.1)) / (np.log(10.0) - np.log(0.1))
+    assert kstest(np.clip(u, 0, 1), "uniform").pvalue > 0.01
+
+
 @pytest.mark.parametrize("kwargs, words", [
     ({"media": ["Lowfat Mlik"]}, "--media: unknown medium 'Lowfat Mlik'"),
     ({"media": []}, "--media"),
@@ -129,6 +155,9 @@ def test_round_seeds_depend_on_seed_and_index_only():
     ({"options": FitOptions(mcmc=False)}, "options.mcmc"),
     ({"scheduler": None, "n_workers": 0}, "--workers"),
     ({"geometry": "missing.yaml"}, "missing.yaml"),
+    ({"optical_depth": (2.0, 1.0)}, "--optical-depth: got 2 1"),
+    ({"optical_depth": (0.1, 1.0), "ml": [16.0]}, "--optical-depth: not with --ml"),
+    ({"optical_depth": (0.1, 1e5)}, "--optical-depth: 0.1-100000 needs"),
 ])
 def test_bad_validate_input_is_an_input_error(kwargs, words, geometry, tmp_path):
     args = {"media": MEDIA, "rounds": 1, "out_dir": tmp_path, "geometry": geometry,
