@@ -111,6 +111,32 @@ def test_rerun_with_other_settings_in_the_same_folder_is_refused(serial_run, geo
                  options=replace(OPTIONS, max_steps=301))
 
 
+def test_rounds_scored_without_optical_depth_are_scored_again(serial_run, geometry, tmp_path,
+                                                               monkeypatch):
+    """A finished round whose round.json predates the optical depth (no ``optical_depth`` in
+    its scores) is scored again from its files, not refitted: same scores, the optical depth
+    as a fresh run computes it, and round.json updated."""
+    src, first = serial_run
+    out = tmp_path / "old"
+    shutil.copytree(src, out)
+    path = out / "round_0000" / "round.json"
+    rec = json.loads(path.read_text())
+    for sc in rec["scores"]:
+        del sc["optical_depth"]
+    path.write_text(json.dumps(rec))
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a finished round was fitted again")
+
+    monkeypatch.setattr("fitmedia.validate.round_trip", no_fit)
+    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS)
+    assert _key(res.scores) == _key(first.scores)
+    assert [s.optical_depth for s in res.scores] == [s.optical_depth for s in first.scores]
+    assert all(s.optical_depth and s.regime for s in res.scores)
+    assert all(sc["optical_depth"] for sc in json.loads(path.read_text())["scores"])
+    assert "regime" in res.table
+
+
 def test_round_seeds_depend_on_seed_and_index_only():
     a = [round_seed_and_ml(3, i, None) for i in range(5)]
     assert a[:2] == [round_seed_and_ml(3, i, None) for i in range(2)]
