@@ -232,14 +232,6 @@ def _finished_round(task: RoundTask) -> dict | None:
     return {**rec, "status": "done earlier"}
 
 
-def _score(d: dict):
-    """A :class:`~fitmedia.validate.Score` from its round.json record (lists back to tuples)."""
-    from .validate import Score
-
-    tau = d.get("optical_depth")
-    return Score(**{**d, "ml": tuple(d["ml"]), "optical_depth": None if tau is None else tuple(tau)})
-
-
 def _is_int(x: Any, lowest: int) -> bool:
     return isinstance(x, (int, np.integer)) and not isinstance(x, bool) and x >= lowest
 
@@ -279,15 +271,12 @@ def ml_range_for_optical_depth(spec, medium_name: str, optical_depth: tuple[floa
     (``fitmedia.regimes``, in ``channel``, with the spec's water absorption) at the ends of
     ``optical_depth``; ml log-uniform in this range is optical depth log-uniform in its range."""
     from .medium import medium_by_name
-    from .regimes import light_to_wall_mm
+    from .regimes import concentration_for_optical_depth
     from .spec import CHANNELS
 
     ci = CHANNELS.index(channel)
-    med = medium_by_name(medium_name)
-    kt = float(np.asarray(med.kappa_a)[ci] + np.asarray(med.kappa_s)[ci])
-    dist = light_to_wall_mm(spec, None)
-    water = spec.water_kappa_a[ci] * dist
-    lo, hi = (tank_ml * (t - water) / (kt * dist) for t in optical_depth)
+    kt = float(medium_by_name(medium_name).kappa_t[ci])
+    lo, hi = (tank_ml * concentration_for_optical_depth(spec, kt, ci, t) for t in optical_depth)
     if not 0 < lo < hi < tank_ml:
         raise InputError(f"--optical-depth: {optical_depth[0]:g}-{optical_depth[1]:g} needs "
                          f"{lo:.3g}-{hi:.3g} ml of {medium_name} in {tank_ml:g} ml, not possible "
@@ -341,7 +330,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     """
     from .inference.fit import FitOptions
     from .spec import load_spec
-    from .validate import write_coverage
+    from .validate import Score, write_coverage
 
     options = options or FitOptions()
     names = _check_validate_args(media, rounds, ml, seed, tank_ml, options)
@@ -375,7 +364,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
                     progress=options.progress, desc="rounds", done=len(records))
     records.update({r["index"]: r for r in ran})
     ordered = [records[i] for i in range(rounds)]
-    scores = [_score(s) for r in ordered for s in r.get("scores", [])]
+    scores = [Score.from_record(s) for r in ordered for s in r.get("scores", [])]
     return write_coverage(out, ordered, scores)
 
 

@@ -29,6 +29,14 @@ def tank_optical_depths(spec, kappa_t: float, channel_index: int) -> tuple[float
                        * light_to_wall_mm(spec, i)) for i, e in enumerate(spec.images))
 
 
+def concentration_for_optical_depth(spec, kappa_t: float, channel_index: int,
+                                    optical_depth: float) -> float:
+    """The inverse of :func:`tank_optical_depths` for the spec's own light: the concentration
+    of a liquid with undiluted ``kappa_t`` (1/mm) that gives ``optical_depth``."""
+    dist = light_to_wall_mm(spec, None)
+    return (optical_depth / dist - spec.water_kappa_a[channel_index]) / kappa_t
+
+
 def regime(optical_depths: Sequence[float] | None) -> str | None:
     """'thin' or 'dense' when every image is; 'informative' otherwise; None when unknown."""
     if not optical_depths or not np.all(np.isfinite(optical_depths)):

@@ -38,6 +38,13 @@ class Score:
     #: per image: the tank's kappa_t (truth, this channel) x the light-to-front-wall distance
     optical_depth: tuple[float, ...] | None = None
 
+    @classmethod
+    def from_record(cls, d: dict) -> Score:
+        """A score from its round.json record (JSON lists back to tuples)."""
+        tau = d.get("optical_depth")
+        return cls(**{**d, "ml": tuple(d["ml"]),
+                      "optical_depth": None if tau is None else tuple(tau)})
+
     @property
     def regime(self) -> str | None:
         """'thin', 'informative' or 'dense' (:func:`fitmedia.regimes.regime`)."""
@@ -80,8 +87,7 @@ def optical_depths(spec: Spec, truth: Medium, channel: str) -> tuple[float, ...]
     from .spec import CHANNELS
 
     ci = CHANNELS.index(channel)
-    return tank_optical_depths(spec, float(np.asarray(truth.kappa_a)[ci]
-                                           + np.asarray(truth.kappa_s)[ci]), ci)
+    return tank_optical_depths(spec, float(truth.kappa_t[ci]), ci)
 
 
 def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str,
@@ -231,7 +237,7 @@ def _coverage_figure(rounds: list[dict]):
     fig = new_figure(11.0, 6.0)
     axes = fig.subplots(2, len(SCORED), squeeze=False)
     for k, q in enumerate(SCORED):
-        sel = [(r["index"], Score(**s)) for r in rounds for s in r.get("scores", [])
+        sel = [(r["index"], Score.from_record(s)) for r in rounds for s in r.get("scores", [])
                if s["quantity"] == q]
         top, bottom, per_bin = axes[0, k], axes[1, k], len(sel) / 10
         top.hist([s.pit for _, s in sel], bins=10, range=(0, 1), color="0.6", edgecolor="k")

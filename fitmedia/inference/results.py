@@ -30,18 +30,21 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
     spec = prep.spec
     params = {q: {} for q in QUANTITIES}
     chans = {}
+    taus = {}  # optical depth light-to-wall per image, from the posterior median (else MAP) kappa_t
     for ch in spec.channels:
         f = fits[ch]
         phys = f["space"].physical_samples(f["samples"]) if "samples" in f else {}
         for q in QUANTITIES:
             params[q][ch] = summarise(phys.get(q), f["map"][q])
+        kt = params["kappa_t"][ch].get("median", params["kappa_t"][ch]["map"])
+        taus[ch] = tank_optical_depths(spec, float(kt), CHANNELS.index(ch))
         chi2, n = f["chi2"]
         info = {"map_log_posterior": f["map_logp"], "n_evals_map": f["n_evals"],
                 "chi2_per_pixel": chi2 / max(n, 1), "n_pixels": n,
                 "brightness_calibrated": prep.brightness[ch],
                 "brightness_calibration_rel_sd": prep.brightness_rel_sd.get(ch),
                 "brightness": f["map"].get("brightness", prep.brightness[ch]),
-                "other_g_mode": f.get("other_g_mode")}
+                "other_g_mode": f.get("other_g_mode"), "optical_depth_regime": regime(taus[ch])}
         if "samples" in f:
             u = f["samples"]
             space = f["space"]
@@ -77,12 +80,6 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
             diag.update(rhat_max=max(max(chans[c]["rhat"].values()) for c in spec.channels),
                         ess_bulk_min=min(min(chans[c]["ess_bulk"].values()) for c in spec.channels))
     diag["channels"] = chans
-    # optical depth light-to-wall per image from the fitted kappa_t (posterior median, else MAP)
-    taus = {}
-    for ch in spec.channels:
-        kt = params["kappa_t"][ch].get("median", params["kappa_t"][ch]["map"])
-        taus[ch] = tank_optical_depths(spec, float(kt), CHANNELS.index(ch))
-        chans[ch]["optical_depth_regime"] = regime(taus[ch])
     images = []
     for i, (entry, im) in enumerate(zip(spec.images, prep.images)):
         per = {}
