@@ -263,36 +263,70 @@ class SingleScattering:
         from the cap table, else None), the arrays of shape (len(sel), n).
         """
         x01, w01 = self._rules[n]
-        span = np.arcsinh((w_b - w_a) / eps)[:, None]
-        et = np.exp(span * x01[None, :])
-        inv = 1.0 / et
-        e2 = 0.5 * eps[:, None]
-        dw = e2 * (et - inv)  # sinh map anchored at w_a (or at w_b when from_end)
+        buf = self._scratch(upper, (len(sel), n))
+        span = np.arcsinh((w_b - w_a) / eps)
+        e2 = 0.5 * eps
+        et = np.multiply(span[:, None], x01[None, :], out=buf["weight"])
+        np.exp(et, out=et)
+        inv = np.divide(1.0, et, out=buf["t"])
+        w = np.subtract(et, inv, out=buf["w"])
+        w *= e2[:, None]  # sinh map anchored at w_a (or at w_b when from_end)
         if from_end.any():
-            w = np.where(from_end[:, None], w_b[:, None] - dw, w_a[:, None] + dw)
+            w[:] = np.where(from_end[:, None], w_b[:, None] - w, w_a[:, None] + w)
         else:
-            w = dw
             w += w_a[:, None]
         et += inv
-        et *= e2 * span * w01[None, :]
+        et *= (e2 * span)[:, None]
+        et *= w01[None, :]
         weight = et
-        t = np.tan(0.5 * w)  # one tan instead of sin and cos of w/2 (numpy's are 8x slower)
-        t2 = t * t
-        h, s0 = self._h[sel][:, None], self._s0[sel][:, None]
+        t = np.multiply(w, 0.5, out=inv)
+        np.tan(t, out=t)  # one tan instead of sin and cos of w/2 (numpy's are 8x slower)
+        t2 = np.multiply(t, t, out=buf["sin2"])
+        tmp = buf["tmp"]
+        path = buf["path"]
+        all_rays = len(sel) == len(self._h)
+        h, s0 = ((self._h, self._s0) if all_rays else (self._h[sel], self._s0[sel]))
         with np.errstate(divide="ignore"):
-            path = s0 + (h / t if upper else h * t)
+            (np.divide if upper else np.multiply)(h[:, None], t, out=path)
+        path += s0[:, None]
         mat = None
         if r_bulb > 0:  # exact solid angle of the sphere instead of pi r^2 / d^2
-            sin_alpha = np.minimum(self._rho[sel][:, None] * (2 * t / (1 + t2)), 1.0)  # r/d
+            rho = self._rho if all_rays else self._rho[sel]
+            sin_alpha = np.add(1.0, t2, out=tmp)  # r/d = rho sin(w) = rho 2t / (1 + t^2)
+            np.divide(t, sin_alpha, out=sin_alpha)
+            sin_alpha *= 2.0 * rho[:, None]
+            np.minimum(sin_alpha, 1.0, out=sin_alpha)
             # Omega / (pi r^2 / d^2) = 2 (1 - cos alpha) / sin^2 alpha = 2 / (1 + cos alpha)
-            weight *= 2.0 / (1.0 + np.sqrt(1.0 - sin_alpha * sin_alpha))
+            cos_alpha = np.multiply(sin_alpha, sin_alpha, out=t)  # t is not needed any more
+            np.subtract(1.0, cos_alpha, out=cos_alpha)
+            np.sqrt(cos_alpha, out=cos_alpha)
+            cos_alpha += 1.0
+            np.divide(2.0, cos_alpha, out=cos_alpha)
+            weight *= cos_alpha
             hit = self._cap_hit[sel] & (not upper)
             if not hasattr(self._work, "by_half"):
                 self._work.by_half = {}
             work = None if self._freezing else self._work.by_half.setdefault(upper, {})
-            mat = cap_table().matrix(np.pi - w if upper else w, sin_alpha, self._cap_row[sel],
-                                     self._cap_frac[sel], hit, work)
-        return path, t2 / (1 + t2), weight, mat
+            if upper:
+                np.subtract(np.pi, w, out=w)  # theta_c = pi - w
+            mat = cap_table().matrix(w, sin_alpha, self._cap_row[sel], self._cap_frac[sel], hit,
+                                     work)
+        sin2 = np.add(1.0, t2, out=tmp)
+        np.divide(t2, sin2, out=t2)  # sin^2(w/2) = t^2 / (1 + t^2)
+        return path, t2, weight, mat
+
+    def _scratch(self, upper: bool, shape: tuple[int, int]) -> dict:
+        """Arrays of ``shape`` for one half's nodes, reused from render to render (new ones
+        while freezing: the frozen node set keeps them)."""
+        names = ("weight", "t", "w", "sin2", "tmp", "path")
+        if self._freezing:
+            return {k: np.empty(shape) for k in names}
+        if not hasattr(self._work, "nodes"):
+            self._work.nodes = {}
+        buf = self._work.nodes.get(upper)
+        if buf is None or buf["w"].shape != shape:
+            buf = self._work.nodes[upper] = {k: np.empty(shape) for k in names}
+        return buf
 
     def _nodes(self, kt: np.ndarray, g: np.ndarray) -> list[tuple]:
         """Quadrature nodes of every ray for channels with extinction ``kt`` and anisotropy ``g``.
