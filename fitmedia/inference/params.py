@@ -8,9 +8,11 @@ Per channel the sampler sees
 * ``atanh_g``: atanh of the HG anisotropy,
 * ``log_brightness`` (only when the light's brightness is not calibrated).
 
-Priors (docs/inference.md): flat in (log kappa_t, logit albedo) inside the
-bounds, which is the same as independent log-uniform (scale-invariant) priors on
-kappa_a and kappa_s (the Jacobian of that map is 1); uniform in g on
+Priors (docs/inference.md): log-uniform in kappa_t; for the albedo an equal mixture
+of flat in logit albedo (with log-uniform kappa_t, the same as independent
+log-uniform kappa_a and kappa_s: right for liquids that hardly absorb, milk) and
+uniform in the albedo (right for absorbing liquids whose kappa_a a thin dilution
+does not resolve), both on the same bounds (ALBEDO_UNIFORM_WEIGHT); uniform in g on
 [G_MIN, G_MAX]; the brightness either normal in log around the clear-water
 calibration (with the calibration's standard error) or log-uniform.  Flat vectors exist only at
 the optimizer / sampler boundary.
@@ -27,6 +29,8 @@ LOG_KT_BOUNDS = (np.log(1e-5), np.log(1e3))  # undiluted kappa_t, 1/mm
 LOGIT_ALBEDO_BOUNDS = (-15.0, 15.0)
 G_MIN, G_MAX = -0.9, 0.995
 ATANH_G_BOUNDS = (float(np.arctanh(G_MIN)), float(np.arctanh(G_MAX)))
+#: weight of the uniform-in-albedo component of the albedo prior (the rest is flat in logit)
+ALBEDO_UNIFORM_WEIGHT = 0.5
 LOG_BRIGHTNESS_SPAN = 12.0  # +-12 e-folds around the initial guess
 
 
@@ -84,6 +88,11 @@ class ParameterSpace:
             bounds.append((-10 * background_sd, 10 * background_sd))
         self.lower = np.array([b[0] for b in bounds])
         self.upper = np.array([b[1] for b in bounds])
+        lo, hi = self.lower[1], self.upper[1]
+        # albedo mixture, density in logit albedo u: w a (1 - a) / (a(hi) - a(lo)) from the
+        # uniform-in-albedo part (da/du = a (1 - a)), (1 - w) / (hi - lo) from the flat part
+        self._alb_flat = (1.0 - ALBEDO_UNIFORM_WEIGHT) / (hi - lo)
+        self._alb_unif = ALBEDO_UNIFORM_WEIGHT / (expit(hi) - expit(lo))
 
     @property
     def ndim(self) -> int:
@@ -105,13 +114,19 @@ class ParameterSpace:
     def log_prior(self, u: np.ndarray) -> float:
         if np.any(u < self.lower) or np.any(u > self.upper) or not np.all(np.isfinite(u)):
             return -np.inf
+        lp = self.log_albedo_prior(u[1])
         # uniform in g: density in atanh g is 1 - tanh^2 = sech^2
-        lp = -2.0 * np.log(np.cosh(u[2]))
+        lp -= 2.0 * np.log(np.cosh(u[2]))
         if self.free_brightness and self.b_sd is not None:
             lp -= 0.5 * ((u[3] - self.log_b0) / self.b_sd) ** 2
         if self.background_sd is not None:
             lp -= 0.5 * (u[-1] / self.background_sd) ** 2
         return float(lp)
+
+    def log_albedo_prior(self, u1):
+        """log density (normalised on the bounds) of the albedo prior in logit albedo."""
+        a = expit(u1)
+        return np.log(self._alb_flat + self._alb_unif * a * (1.0 - a))
 
     def physical_samples(self, u: np.ndarray) -> dict[str, np.ndarray]:
         """Samples (..., ndim) -> dict of physical arrays (1/mm)."""
