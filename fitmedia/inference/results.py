@@ -13,6 +13,7 @@ from ..regimes import regime, tank_optical_depths
 from ..spec import CHANNELS
 from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
+from .params import ALBEDO_UNIFORM_WEIGHT
 
 QUANTITIES = ("kappa_a", "kappa_s", "g", "kappa_t", "albedo")
 
@@ -100,7 +101,10 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "options": {k: getattr(options, k) for k in ("robust", "n_walkers", "n_tau", "max_steps",
                                                      "global_evals", "mcmc")},
-        "priors": {"kappa_a, kappa_s": "log-uniform (flat in log kappa_t and logit albedo)",
+        "priors": {"kappa_t": "log-uniform",
+                   "albedo": (f"mixture: {1 - ALBEDO_UNIFORM_WEIGHT:g} flat in logit albedo "
+                              f"(log-uniform kappa_a, kappa_s) + {ALBEDO_UNIFORM_WEIGHT:g} "
+                              "uniform in albedo, on the bounds"),
                    "g": "uniform", "spec_overrides": spec.priors,
                    "bounds": {n: [lo, hi] for n, lo, hi in zip(
                        fits[spec.channels[0]]["names"], fits[spec.channels[0]]["space"].lower.tolist(),
