@@ -47,7 +47,12 @@ def test_round_trip_grid_recovers_truth_within_99_percent(tmp_path, seed):
 
 def test_round_trip_dilute_milk_quick(tmp_path, seed):
     """Synthetic round trip at small size: the MAP of kappa_s and g of dilute milk is within
-    2 % and 0.01 of the truth (noise-limited precision is ~0.5 % and ~0.002 here)."""
+    3 % and 0.01 of the truth.  The kappa_s tolerance was 2 % under the flat-logit albedo
+    prior; milk's albedo (0.9996) is not resolved here, and under the mixture prior
+    (docs/inference.md) the MAP's albedo sits at the low edge of the likelihood's plateau
+    (0.987-1.000 in R and B), taking kappa_s with it: measured at seeds 12345 / 1 / 2,
+    kappa_s's largest error over R, G, B went from 1.4 / 0.8 / 1.7 % (flat) to
+    2.1 / 0.8 / 1.7 % (mixture).  g moved by < 0.001."""
     geometry = make_spec(width=60, height=45)
     from fitmedia.pipeline import fit
     from fitmedia.synth import synthesize
@@ -56,7 +61,7 @@ def test_round_trip_dilute_milk_quick(tmp_path, seed):
     spec = synthesize(geometry, tmp_path / "cap", milk, [16], seed=seed)
     res = fit(spec, tmp_path / "fit", FitOptions(mcmc=False, seed=seed, workers=1), report=False)
     for k, ch in enumerate("RGB"):
-        assert res["parameters"]["kappa_s"][ch]["map"] == pytest.approx(milk.kappa_s[k], rel=0.02)
+        assert res["parameters"]["kappa_s"][ch]["map"] == pytest.approx(milk.kappa_s[k], rel=0.03)
         assert res["parameters"]["g"][ch]["map"] == pytest.approx(milk.g[k], abs=0.01)
     assert "converged" not in res["diagnostics"]
     assert set(res["parameters"]["kappa_s"]["R"]) == {"map"}
@@ -68,8 +73,8 @@ def test_second_g_mode_is_reported(tmp_path):
     backward scattering (g ~ -0.6) fit the data almost equally well: in R and G the best
     candidate of the other sign is reported as ``other_g_mode`` within 5 log-posterior units of
     the MAP (with the sampler such a channel is marked not converged, see docs/inference.md).
-    Negative control: dense milk (Lowfat Milk 16 ml) has its other-sign candidate > 100 units
-    below."""
+    Negative controls: Lowfat Milk 16 ml has its other-sign candidate > 100 units below; a
+    dense capture whose posterior hardly depends on g reports no second mode."""
     from fitmedia.spec import load_spec
     from fitmedia.synth import synthesize
     from fitmedia.pipeline import fit
@@ -87,3 +92,10 @@ def test_second_g_mode_is_reported(tmp_path):
     milk = synthesize(geo, tmp_path / "milk", medium_by_name("Lowfat Milk"), [16], seed=1)
     chans = fit(milk, tmp_path / "fit_milk", opts, report=False)["diagnostics"]["channels"]
     assert all(c["other_g_mode"]["delta_log_posterior"] < -100 for c in chans.values())
+    # dense Regular Milk (199.1 ml; round 21 of the 8-240 ml run, docs/validation.md): g hardly
+    # matters and the other sign's candidate slid to g ~ 1e-7 at 0 units below the MAP, which
+    # was reported as a second mode.  It is the MAP's own region, not a mode.
+    dense = synthesize(geo, tmp_path / "dense", medium_by_name("Regular Milk"), [199.1],
+                       seed=1756264304)
+    chans = fit(dense, tmp_path / "fit_dense", opts, report=False)["diagnostics"]["channels"]
+    assert all(c["other_g_mode"] is None for c in chans.values()), chans
