@@ -1,0 +1,1 @@
+"""Inference: parameter space and priors, likelihood, MAP search, emcee sampling, results."""
