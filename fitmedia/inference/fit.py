@@ -21,12 +21,19 @@ from ..spec import CHANNELS, Spec
 from .likelihood import ChannelProblem, Observation
 from .optimize import find_map
 from .params import G_MAX, G_MIN, ChannelParams, ParameterSpace
-from .sample import run_chain
+from .sample import half_space, mix_modes, mode_log_mass, mode_weights, run_chain
 
 
-#: A second mode of g (the other sign) whose log posterior is within this of the MAP's makes the
-#: channel's chain "not converged": the sampler explores one mode (density ratio e^-5 = 0.7 %).
-OTHER_MODE_DELTA = 5.0
+#: A second mode of g (the other sign) whose log posterior is within this of the MAP's is
+#: sampled too (a chain of its own) and the two chains are mixed by the modes' posterior masses.
+#: 8 units below, the density is 3.4e-4 of the MAP's; the backward mode at g's bound is
+#: narrower than the forward one (mass 0.2 x density ratio in a measured case), so a mode left
+#: out holds well under 0.1 % of the posterior (docs/inference.md)
+OTHER_MODE_DELTA = 8.0
+#: The modes' weights are trusted when their standard error (from the bridge sampling of each
+#: mode's mass) is below this: an error dw in the weights moves the mixture's CDF by at most dw
+#: anywhere, so no interval's coverage by more than 2 dw
+MODE_WEIGHT_SE = 0.01
 #: |g| below which the polished other-sign optimum counts as the MAP's own region (g = 0)
 SAME_MODE_G = 1e-3
 
@@ -252,7 +259,12 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
            "chi2_images": problem.chi2_images(res.x),
            "free_brightness": free, "space": space, "other_g_mode": other_mode}
     if options.mcmc:
-        chain = run_chain(problem.log_posterior, res.x, res.cov, space.lower, space.upper, rng=rng,
+        two = other_mode is not None and other_mode["delta_log_posterior"] > -OTHER_MODE_DELTA
+        # with two modes each chain keeps to its own sign of g, so that the modes' masses can
+        # be measured separately and the chains mixed by them
+        log_post = half_space(problem.log_posterior, 2, np.sign(res.x[2]) or 1.0) if two \
+            else problem.log_posterior
+        chain = run_chain(log_post, res.x, res.cov, space.lower, space.upper, rng=rng,
                           checkpoint=checkpoint, resume=options.resume,
                           n_walkers=options.n_walkers, n_tau=options.n_tau,
                           max_steps=options.max_steps, progress=options.progress, label=channel)
@@ -260,13 +272,64 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
                    tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
                    reason=chain.reason, burn=chain.burn, thin=chain.thin, chain=chain.chain,
                    ess=chain.ess, rhat=chain.rhat)
-        if other_mode is not None and other_mode["delta_log_posterior"] > -OTHER_MODE_DELTA:
-            out.update(converged=False, reason=(
-                f"a second mode at g = {other_mode['g']:.3g}, log posterior only "
-                f"{-other_mode['delta_log_posterior']:.2g} below the MAP's, was not sampled: the "
-                f"intervals describe the mode at g = {out['map']['g']:.3g} only; "
-                + chain.reason))
+        if two:
+            out.update(_sample_other_mode(problem, space, res, alt, chain, log_post, options,
+                                          checkpoint, rng, channel, other_mode))
     return out
+
+
+def _min_ess(chain) -> float | None:
+    return None if chain.ess is None else float(np.min(chain.ess))
+
+
+def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt, chain,
+                       log_post, options: FitOptions, checkpoint: Path | None,
+                       rng: np.random.Generator, channel: str, other_mode: dict) -> dict:
+    """Sample the other sign's mode of g with a chain of its own (quadrature nodes adapted to
+    it), measure both modes' posterior masses by importance sampling, and mix the two chains'
+    samples by those masses.  Returns the fields of ``fit_channel``'s result that change."""
+    mass = [mode_log_mass(log_post, chain.samples, chain.log_prob_samples, space.lower,
+                          space.upper, rng, n_eff=_min_ess(chain))]
+    problem.adapt(alt.x)
+    log_alt = half_space(problem.log_posterior, 2, np.sign(alt.x[2]) or 1.0)
+    polished = find_map(log_alt, alt.x, space.lower, space.upper, global_evals=0)
+    ckpt = None if checkpoint is None else checkpoint.with_name(
+        checkpoint.stem + "_mode2" + checkpoint.suffix)
+    chain2 = run_chain(log_alt, polished.x, polished.cov, space.lower, space.upper, rng=rng,
+                       checkpoint=ckpt, resume=options.resume, n_walkers=options.n_walkers,
+                       n_tau=options.n_tau, max_steps=options.max_steps,
+                       progress=options.progress, label=f"{channel} mode 2")
+    mass.append(mode_log_mass(log_alt, chain2.samples, chain2.log_prob_samples, space.lower,
+                              space.upper, rng, n_eff=_min_ess(chain2)))
+    problem.adapt(res.x)
+    w = mode_weights(mass)
+    idx = mix_modes([chain.samples, chain2.samples], w, rng)
+    parts, logps = (chain.samples, chain2.samples), (chain.log_prob_samples,
+                                                     chain2.log_prob_samples)
+    samples = np.array([parts[k][r] for k, r in idx])
+    log_prob = np.array([logps[k][r] for k, r in idx])
+    order = rng.permutation(len(samples))
+    modes = []
+    for k, (c, m, x) in enumerate(zip((chain, chain2), mass, (res.x, polished.x))):
+        modes.append({"g_map": float(np.tanh(x[2])), "weight": float(w[k]),
+                      "log_mass": m.log_mass, "mass_rel_se": m.rel_se,
+                      "importance_ess": m.ess, "converged": bool(c.converged),
+                      "reason": c.reason, "n_steps": int(c.n_steps),
+                      "autocorr_time_max": float(np.nanmax(c.tau)),
+                      "n_samples_used": int(np.sum(idx[:, 0] == k))})
+    weight_se = float(w[0] * w[1] * np.hypot(mass[0].rel_se, mass[1].rel_se))
+    trusted = weight_se < MODE_WEIGHT_SE
+    converged = chain.converged and chain2.converged and trusted
+    reason = (f"two modes of g sampled: g = {modes[0]['g_map']:.3g} (weight {w[0]:.3g}) and "
+              f"g = {modes[1]['g_map']:.3g} (weight {w[1]:.3g}); mode 1: {chain.reason}; "
+              f"mode 2: {chain2.reason}")
+    if not trusted:
+        reason += (f"; the modes' weights are uncertain (standard error {weight_se:.2g} > "
+                   f"{MODE_WEIGHT_SE:g})")
+    other = dict(other_mode, sampled=True, weight=float(w[1]), weight_se=weight_se)
+    return {"samples": samples[order], "log_prob": log_prob[order], "converged": converged,
+            "reason": reason, "modes": modes, "chain_mode2": chain2.chain,
+            "other_g_mode": other}
 
 
 def _job(args):

@@ -68,6 +68,8 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
                         n_samples=len(f["samples"]),
                         g_constrained=bool(g90 < 0.5 * prior_g_interval_width(f["space"])),
                         kappa_s_consistent_with_zero=bool(ks["q05"] < 1e-3 * ks["q95"]))
+            if "modes" in f:
+                info["g_modes"] = f["modes"]
         chans[ch] = info
     diag: dict = {}
     if options.mcmc:
@@ -139,6 +141,9 @@ def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results:
     for ch, f in fits.items():
         if "chain" in f:
             write_inference_data(out_dir / f"posterior_{ch}.nc", f)
+        if "chain_mode2" in f:  # the other mode of g's chain (docs/inference.md)
+            write_inference_data(out_dir / f"posterior_{ch}_mode2.nc",
+                                 dict(f, chain=f["chain_mode2"]))
     imgs = {}
     idx = [CHANNELS.index(c) for c in spec.channels]
     for i, im in enumerate(prep.images):
