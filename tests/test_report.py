@@ -104,6 +104,10 @@ def test_report_flags_and_notes(fit_outputs, tmp_path):
     results["diagnostics"]["channels"]["R"]["kappa_a_upper_limit_only"] = True
     results["diagnostics"]["channels"]["R"]["optical_depth_regime"] = "thin"
     results["diagnostics"]["channels"]["G"]["optical_depth_regime"] = "dense"
+    results["diagnostics"]["channels"]["G"]["g_modes"] = [{"g_map": 0.56, "weight": 0.855},
+                                                          {"g_map": -0.67, "weight": 0.145}]
+    results["diagnostics"]["channels"]["B"]["g_modes"] = [{"g_map": 0.56, "weight": 0.997},
+                                                          {"g_map": -0.66, "weight": 0.003}]
     (out / "results.json").write_text(json.dumps(results))
     text = write_report(out).read_text(encoding="ascii")
     assert "too dilute: optical depth light-to-wall below 0.1" in text
@@ -112,6 +116,9 @@ def test_report_flags_and_notes(fit_outputs, tmp_path):
     assert "g unconstrained: the medium hardly scatters in this channel" in text
     assert "consistent with zero" in text
     assert "read its q95 as an upper limit" in text
+    assert ("g &asymp; 0.56 with probability 0.855, g &asymp; -0.67 with probability 0.145; "
+            "the 99 % intervals reach into both") in text
+    assert "probability 0.003; the smaller holds &lt; 0.5 %, outside the 99 % intervals" in text
 
 
 def test_kappa_a_upper_limit_flag_follows_its_definition(fit_outputs):
