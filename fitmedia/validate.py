@@ -23,6 +23,8 @@ LEVELS = (0.68, 0.90, 0.99)
 COVERAGE_90_RANGE = (0.85, 0.95)
 #: ... and the mean standardised bias z = (median - truth) / std is smaller than this.
 MAX_ABS_MEAN_Z = 0.2
+#: z's PIT is kept this far from 0 and 1 (a truth outside every posterior sample)
+PIT_CLIP = 1e-4
 
 
 @dataclass
@@ -52,7 +54,13 @@ class Score:
 
     @property
     def z(self) -> float:
-        return (self.median - self.truth) / self.std if self.std > 0 else np.inf
+        """The truth's position in the posterior as a normal score: Phi^-1(1 - PIT), with the
+        PIT kept inside [1e-4, 1 - 1e-4] (|z| <= 3.72).  For a normal posterior this is
+        (median - truth) / sd; unlike that ratio it does not shrink when a second mode of g,
+        however light, inflates the posterior's sd (docs/validation.md)."""
+        from scipy.stats import norm
+
+        return float(norm.isf(min(max(self.pit, PIT_CLIP), 1.0 - PIT_CLIP)))
 
     def inside(self, level: float) -> bool:
         """Is the truth inside the central ``level`` credible interval?"""
@@ -169,8 +177,9 @@ def coverage_summary(scores: list[Score], levels: Sequence[float] = LEVELS) -> d
     dict
         ``quantities.<q>`` and ``media.<medium>.<q>``, each with ``n`` (rounds x channels),
         ``coverage`` (fraction of truths inside the central 68/90/99 % interval),
-        ``coverage_90_standard_error`` (binomial), ``mean_z``, ``mean_abs_z`` (z = (median -
-        truth) / posterior std, finite z only), ``n_infinite_z`` (std 0); ``criteria.<q>``
+        ``coverage_90_standard_error`` (binomial), ``mean_z``, ``mean_abs_z`` (z = Phi^-1(1 -
+        PIT), :attr:`Score.z`), ``n_infinite_z`` (0 since z became PIT-based; kept for
+        readers of older files); ``criteria.<q>``
         (``coverage_90_ok``, ``bias_ok``, ``passed``); ``passed``.
     """
     quantities = {q: _block([s for s in scores if s.quantity == q], levels)

@@ -320,6 +320,25 @@ def test_coverage_summary_criteria():
     assert not cb["passed"] and not cb["criteria"]["kappa_s"]["bias_ok"]
 
 
+def test_z_is_the_pit_normal_score():
+    """z against its definitions: for a normal posterior N(median, sd) it equals
+    (median - truth) / sd (analytic); a second, light mode of g that inflates the posterior's
+    sd (0.0076 -> 0.33 in a measured Head & Shoulders round) leaves it unchanged, because it
+    depends on the PIT only; a truth outside every sample gives |z| = 3.72, not infinity."""
+    from scipy.stats import norm
+
+    from fitmedia.validate import Score
+
+    for truth, median, sd in ((0.9, 0.88, 0.0076), (1.0, 1.3, 0.2), (5.0, 4.0, 2.0)):
+        pit = float(norm.cdf((truth - median) / sd))
+        s = Score("m", (8.0,), "R", "g", truth, median, sd, pit)
+        assert s.z == pytest.approx((median - truth) / sd, abs=1e-9)
+        wide = Score("m", (8.0,), "R", "g", truth, median, 0.33, pit)
+        assert wide.z == s.z
+    assert Score("m", (8.0,), "R", "g", 1.0, 2.0, 0.1, 0.0).z == pytest.approx(3.719, abs=1e-3)
+    assert Score("m", (8.0,), "R", "g", 1.0, 0.0, 0.1, 1.0).z == pytest.approx(-3.719, abs=1e-3)
+
+
 def test_optical_depth_regimes():
     """The optical depth that sorts scores into regimes, against a hand computation: the
     canonical tank is 300 mm deep and the bulb sits at z = 30 mm, so the light-to-wall distance
