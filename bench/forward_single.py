@@ -9,6 +9,11 @@ the MAP) is timed too, as a ratio against the adaptive render measured in this r
 Renders are timed warm; the one-off costs of the bulb's cap table (built once per
 process, then one slice per new value of g on a grid of 0.05 in atanh g, four on the
 first render at a new g) are printed last.
+
+The machine's speed varies between sessions on a shared VM (the same code timed 17.0-17.7 ms
+and 18.5-20.0 ms on two days), so each render is also given as a multiple of a fixed numpy
+kernel timed in the same run (exp and a multiply-add over 90000 x 64 doubles: one value per
+pixel, channel and quadrature node): that ratio is what to compare across runs.
 """
 
 from __future__ import annotations
@@ -40,7 +45,16 @@ def timed(fn, repeats=15):
     return float(np.median(t))
 
 
+def reference_kernel() -> float:
+    """Seconds for a fixed numpy workload shaped like one render's inner loop."""
+    x = np.linspace(0.0, 5.0, 90000 * 64).reshape(90000, 64)
+    w = np.full(64, 1.0 / 64)
+    return timed(lambda: (np.exp(-x) * x) @ w)
+
+
 def main() -> None:
+    t_ref = reference_kernel()
+    print(f"reference kernel (exp and multiply-add, 90000 x 64 doubles): {1e3 * t_ref:.1f} ms")
     t0 = time.perf_counter()
     table = cap_table()
     t_table = time.perf_counter() - t0
@@ -59,7 +73,8 @@ def main() -> None:
         print(f"{name} {ml} ml, 200x150x3: render {1e3 * t:.1f} ms (target 20 ms: ratio {t / 0.020:.2f}); "
               f"vs 16x nodes: max rel {rel.max():.1e}, mean rel {rel.mean():.1e} "
               f"(target 1e-3: ratio {rel.max() / 1e-3:.2f}); frozen nodes {1e3 * tf:.1f} ms "
-              f"({t / tf:.1f}x faster than adaptive)")
+              f"({t / tf:.1f}x faster than adaptive); render / reference kernel "
+              f"{t / t_ref:.2f}, frozen / reference {tf / t_ref:.2f}")
     t_slice = []
     for k in range(-60, -55):  # g = tanh(-3) ..: slices no render above has touched
         t0 = time.perf_counter()
