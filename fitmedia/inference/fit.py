@@ -274,7 +274,8 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
                    ess=chain.ess, rhat=chain.rhat)
         if two:
             out.update(_sample_other_mode(problem, space, res, alt, chain, log_post, options,
-                                          checkpoint, rng, channel, other_mode))
+                                          checkpoint, [seed, CHANNELS.index(channel)], channel,
+                                          other_mode))
     return out
 
 
@@ -284,10 +285,14 @@ def _min_ess(chain) -> float | None:
 
 def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt, chain,
                        log_post, options: FitOptions, checkpoint: Path | None,
-                       rng: np.random.Generator, channel: str, other_mode: dict) -> dict:
+                       seed: list[int], channel: str, other_mode: dict) -> dict:
     """Sample the other sign's mode of g with a chain of its own (quadrature nodes adapted to
-    it), measure both modes' posterior masses by importance sampling, and mix the two chains'
-    samples by those masses.  Returns the fields of ``fit_channel``'s result that change."""
+    it), measure both modes' posterior masses by bridge sampling, and mix the two chains'
+    samples by those masses.  Returns the fields of ``fit_channel``'s result that change.
+
+    The second chain and the bridge/mixing draw from random streams of their own (``seed``
+    plus 2 and 3): a resumed first chain skips its initial draws, and must not shift them."""
+    rng = np.random.default_rng([*seed, 3])
     mass = [mode_log_mass(log_post, chain.samples, chain.log_prob_samples, space.lower,
                           space.upper, rng, n_eff=_min_ess(chain))]
     problem.adapt(alt.x)
@@ -295,7 +300,8 @@ def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt,
     polished = find_map(log_alt, alt.x, space.lower, space.upper, global_evals=0)
     ckpt = None if checkpoint is None else checkpoint.with_name(
         checkpoint.stem + "_mode2" + checkpoint.suffix)
-    chain2 = run_chain(log_alt, polished.x, polished.cov, space.lower, space.upper, rng=rng,
+    chain2 = run_chain(log_alt, polished.x, polished.cov, space.lower, space.upper,
+                       rng=np.random.default_rng([*seed, 2]),
                        checkpoint=ckpt, resume=options.resume, n_walkers=options.n_walkers,
                        n_tau=options.n_tau, max_steps=options.max_steps,
                        progress=options.progress, label=f"{channel} mode 2")
