@@ -21,7 +21,7 @@ SCORED = ("kappa_s", "kappa_t", "g")
 LEVELS = (0.68, 0.90, 0.99)
 #: Pass criteria: the 90 % intervals cover the truth in this fraction of the scores ...
 COVERAGE_90_RANGE = (0.85, 0.95)
-#: ... and the mean standardised bias z = (median - truth) / std is smaller than this.
+#: ... and the mean standardised bias z (:attr:`Score.z`, Phi^-1(1 - PIT)) is smaller than this.
 MAX_ABS_MEAN_Z = 0.2
 #: z's PIT is kept this far from 0 and 1 (a truth outside every posterior sample)
 PIT_CLIP = 1e-4

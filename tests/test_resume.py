@@ -21,6 +21,31 @@ def _fit_cmd(spec, out, *extra):
             *extra]
 
 
+def _start_and_kill(spec, out, checkpoint_name):
+    """Start a fit into ``out`` and `kill -9` it once its ``checkpoint_name`` holds 200 steps
+    (the run must have stopped before its 600 steps, without a results.json)."""
+    proc = subprocess.Popen(_fit_cmd(spec, out), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    ckpt = out / checkpoint_name
+    deadline = time.time() + 300
+    while time.time() < deadline:
+        if ckpt.exists():
+            try:
+                if int(np.load(ckpt)["iteration"]) >= 200:
+                    break
+            except (OSError, ValueError, KeyError):  # being replaced right now
+                pass
+        time.sleep(0.05)
+    else:
+        proc.kill()
+        pytest.fail(f"no {checkpoint_name} with 200 steps within 300 s")
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    assert not (out / "results.json").exists()
+    assert 200 <= int(np.load(ckpt)["iteration"]) < 600
+
+
 @pytest.mark.slow
 def test_kill_9_and_resume_gives_the_uninterrupted_chain(tmp_path):
     """A real `kill -9` of the fitting process while channel R samples; `--resume` completes
@@ -34,27 +59,7 @@ def test_kill_9_and_resume_gives_the_uninterrupted_chain(tmp_path):
                  str(tmp_path / "cap"), "--seed", "2"]) == 0
     spec = tmp_path / "cap" / "capture.yaml"
 
-    proc = subprocess.Popen(_fit_cmd(spec, tmp_path / "killed"), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
-    ckpt = tmp_path / "killed" / "checkpoint_R.npz"
-    deadline = time.time() + 300
-    while time.time() < deadline:
-        if ckpt.exists():
-            try:
-                if int(np.load(ckpt)["iteration"]) >= 200:
-                    break
-            except (OSError, ValueError, KeyError):  # being replaced right now
-                pass
-        time.sleep(0.05)
-    else:
-        proc.kill()
-        pytest.fail("no checkpoint with 200 steps within 300 s")
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    assert proc.returncode == -signal.SIGKILL
-    assert not (tmp_path / "killed" / "results.json").exists()
-    stopped_at = int(np.load(ckpt)["iteration"])
-    assert 200 <= stopped_at < 600
+    _start_and_kill(spec, tmp_path / "killed", "checkpoint_R.npz")
 
     res = subprocess.run(_fit_cmd(spec, tmp_path / "killed", "--resume"), capture_output=True,
                          text=True, timeout=600)
@@ -89,25 +94,7 @@ def test_kill_during_either_mode_and_resume(tmp_path, watched):
     spec = synthesize(geo, tmp_path / "cap", medium_by_name("White Grapefruit Juice"), [9],
                       seed=1174215102)
     spec.write_text(spec.read_text() + "channels: [R]\n")
-    proc = subprocess.Popen(_fit_cmd(spec, tmp_path / "killed"), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
-    ckpt = tmp_path / "killed" / watched
-    deadline = time.time() + 300
-    while time.time() < deadline:
-        if ckpt.exists():
-            try:
-                if int(np.load(ckpt)["iteration"]) >= 200:
-                    break
-            except (OSError, ValueError, KeyError):  # being replaced right now
-                pass
-        time.sleep(0.05)
-    else:
-        proc.kill()
-        pytest.fail(f"no {watched} with 200 steps within 300 s")
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    assert not (tmp_path / "killed" / "results.json").exists()
-    assert 200 <= int(np.load(ckpt)["iteration"]) < 600
+    _start_and_kill(spec, tmp_path / "killed", watched)
 
     for out, extra in (("killed", ("--resume",)), ("whole", ())):
         res = subprocess.run(_fit_cmd(spec, tmp_path / out, *extra), capture_output=True,

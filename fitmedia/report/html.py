@@ -230,16 +230,15 @@ def _channel_flags(results: dict, ch: str, samples: dict[str, np.ndarray] | None
                      "dilute")
     if info.get("converged") is False:
         flags.append("sampler not converged: intervals unreliable")
-    modes = info.get("g_modes")
+    modes = [m for m in info.get("g_modes") or [] if isinstance(m, dict)]
     if modes:
+        both = min(_num(m.get("weight")) or 0.0 for m in modes) >= 0.005
         flags.append("two modes of g (forward and backward scattering fit almost equally well), "
                      "both sampled: " + ", ".join(
                          f"g &asymp; {_fmt(m.get('g_map'), '.2f')} with probability "
-                         f"{_fmt(m.get('weight'), '.3f')}" for m in modes if isinstance(m, dict))
+                         f"{_fmt(m.get('weight'), '.3f')}" for m in modes)
                      + ("; the 99 % intervals reach into both; add liquid to separate them"
-                        if min(_num(m.get("weight")) or 0.0 for m in modes
-                               if isinstance(m, dict)) >= 0.005 else
-                        "; the smaller holds &lt; 0.5 %, outside the 99 % intervals"))
+                        if both else "; the smaller holds &lt; 0.5 %, outside the 99 % intervals"))
     chi2 = _num(info.get("chi2_per_pixel"))
     if chi2 is not None and not CHI2_WARN[0] <= chi2 <= CHI2_WARN[1]:
         flags.append(f"&chi;&sup2;/pixel = {chi2:.3g}: the model does not match the data "
