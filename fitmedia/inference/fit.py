@@ -232,7 +232,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     best = max(cands, key=lambda c: c.log_posterior)
     # the best candidate scattering the other way (forward vs backward g), polished with its own
     # nodes: the sampler explores the best mode only, so a close second mode is reported
-    other = [c for c in cands if np.tanh(c.x[2]) * np.tanh(best.x[2]) < 0]
+    other = [c for c in cands if _opposite_g(c.x, best.x)]
     alt = None
     if other:
         alt = max(other, key=lambda c: c.log_posterior)
@@ -243,7 +243,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
         # the polish runs over the whole range of g: on a posterior that hardly depends on g
         # (dense captures) it slides to g = 0 or across it, into the MAP's own region; that
         # is not a second mode (docs/inference.md)
-        if np.tanh(alt.x[2]) * np.tanh(best.x[2]) >= 0 or abs(np.tanh(alt.x[2])) < SAME_MODE_G:
+        if not _opposite_g(alt.x, best.x) or abs(np.tanh(alt.x[2])) < SAME_MODE_G:
             alt = None
     # 3. nodes tuned at the optimum; polish; Laplace covariance
     problem.adapt(best.x)
@@ -262,7 +262,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
         two = other_mode is not None and other_mode["delta_log_posterior"] > -OTHER_MODE_DELTA
         # with two modes each chain keeps to its own sign of g, so that the modes' masses can
         # be measured separately and the chains mixed by them
-        log_post = half_space(problem.log_posterior, 2, np.sign(res.x[2]) or 1.0) if two \
+        log_post = half_space(problem.log_posterior, 2, res.x[2]) if two \
             else problem.log_posterior
         chain = run_chain(log_post, res.x, res.cov, space.lower, space.upper, rng=rng,
                           checkpoint=checkpoint, resume=options.resume,
@@ -277,6 +277,11 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
                                           checkpoint, [seed, CHANNELS.index(channel)], channel,
                                           other_mode))
     return out
+
+
+def _opposite_g(x: np.ndarray, y: np.ndarray) -> bool:
+    """Whether two points of the sampler's space scatter opposite ways (g of opposite signs)."""
+    return bool(np.tanh(x[2]) * np.tanh(y[2]) < 0)
 
 
 def _min_ess(chain) -> float | None:
@@ -296,7 +301,7 @@ def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt,
     mass = [mode_log_mass(log_post, chain.samples, chain.log_prob_samples, space.lower,
                           space.upper, rng, n_eff=_min_ess(chain))]
     problem.adapt(alt.x)
-    log_alt = half_space(problem.log_posterior, 2, np.sign(alt.x[2]) or 1.0)
+    log_alt = half_space(problem.log_posterior, 2, alt.x[2])
     polished = find_map(log_alt, alt.x, space.lower, space.upper, global_evals=0)
     ckpt = None if checkpoint is None else checkpoint.with_name(
         checkpoint.stem + "_mode2" + checkpoint.suffix)

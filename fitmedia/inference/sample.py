@@ -125,10 +125,12 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
                        converged, reason, burn, thin, logp, chain, ess, rhat)
 
 
-def half_space(log_prob: Callable[[np.ndarray], float], index: int, sign: float
+def half_space(log_prob: Callable[[np.ndarray], float], index: int, side: float
                ) -> Callable[[np.ndarray], float]:
-    """``log_prob`` on the half of the box where ``sign * x[index] > 0`` (one mode of g when
-    ``index`` is atanh g), -inf on the other half."""
+    """``log_prob`` on the half of the box where ``x[index]`` has the sign of ``side`` (one mode
+    of g when ``index`` is atanh g; ``side`` = 0 counts as positive), -inf on the other half."""
+    sign = -1.0 if side < 0 else 1.0
+
     def f(x):
         return log_prob(x) if sign * x[index] > 0 else -np.inf
     return f
