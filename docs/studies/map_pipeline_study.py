@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fitmedia.inference.fit import FitOptions, fit_channel, prepare
+from fitmedia.inference.fit import FitOptions, channel_args, fit_channel, prepare
 from fitmedia.medium import medium_by_name
 from fitmedia.spec import CHANNELS, load_spec
 from fitmedia.synth import synthesize
@@ -39,11 +39,8 @@ def run(a) -> None:
                 spec = load_spec(synthesize(geo, tmp, med, [a.ml], seed=s))
                 prep = prepare(spec)
             for ch in a.channels:
-                ci = CHANNELS.index(ch)
-                r = fit_channel(spec, ch, [prep.images[0].data[..., ci]],
-                                [prep.images[0].valid[..., ci]], prep.brightness[ch],
-                                prep.brightness_rel_sd[ch], prep.noise[ch],
-                                FitOptions(mcmc=False, progress=False), seed=s)
+                r = fit_channel(*channel_args(prep, ch, FitOptions(mcmc=False, progress=False,
+                                                                   seed=s), None))
                 cov = r["laplace_cov"]
                 out.write(json.dumps({
                     "seed": s, "ch": ch, "x_map": r["x_map"].tolist(),

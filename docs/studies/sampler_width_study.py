@@ -20,9 +20,9 @@ import numpy as np
 from scipy.stats import multivariate_t
 
 import fitmedia.inference.fit as fit_module
-from fitmedia.inference.fit import FitOptions, fit_channel, prepare
+from fitmedia.inference.fit import FitOptions, channel_args, fit_channel, prepare
 from fitmedia.inference.sample import initial_ball
-from fitmedia.spec import CHANNELS, load_spec
+from fitmedia.spec import load_spec
 
 
 def channel_posterior(spec_path: str, channel: str):
@@ -37,13 +37,9 @@ def channel_posterior(spec_path: str, channel: str):
 
     fit_module.ChannelProblem = keep
     try:
-        spec = load_spec(spec_path)
-        prep = prepare(spec)
-        ci = CHANNELS.index(channel)
-        r = fit_channel(spec, channel, [prep.images[0].data[..., ci]],
-                        [prep.images[0].valid[..., ci]], prep.brightness[channel],
-                        prep.brightness_rel_sd[channel], prep.noise[channel],
-                        FitOptions(mcmc=False, progress=False))
+        prep = prepare(load_spec(spec_path))
+        r = fit_channel(*channel_args(prep, channel, FitOptions(mcmc=False, progress=False),
+                                      None))
     finally:
         fit_module.ChannelProblem = build
     return problems[-1].log_posterior, r["x_map"], r["laplace_cov"], r["space"]

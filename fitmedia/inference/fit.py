@@ -347,17 +347,20 @@ def _job(args):
     return fit_channel(*args)
 
 
+def channel_args(prep: Prepared, ch: str, options: FitOptions, checkpoint_dir: Path | None
+                 ) -> tuple:
+    """``fit_channel``'s arguments for channel ``ch`` of a prepared capture."""
+    ci = CHANNELS.index(ch)
+    ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"checkpoint_{ch}.npz"
+    return (prep.spec, ch, [im.data[..., ci] for im in prep.images],
+            [im.valid[..., ci] for im in prep.images], prep.brightness[ch],
+            prep.brightness_rel_sd.get(ch), prep.noise[ch], options, ckpt, options.seed)
+
+
 def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | None
                  ) -> dict[str, dict]:
     """Fit every channel (in parallel processes when there are cores); one chain file each."""
-    spec = prep.spec
-    jobs = []
-    for ch in spec.channels:
-        ci = CHANNELS.index(ch)
-        ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"checkpoint_{ch}.npz"
-        jobs.append((spec, ch, [im.data[..., ci] for im in prep.images],
-                     [im.valid[..., ci] for im in prep.images], prep.brightness[ch],
-                     prep.brightness_rel_sd.get(ch), prep.noise[ch], options, ckpt, options.seed))
+    jobs = [channel_args(prep, ch, options, checkpoint_dir) for ch in prep.spec.channels]
     workers = options.workers or min(len(jobs), os.cpu_count() or 1)
     if workers <= 1 or len(jobs) == 1:
         return {j[1]: fit_channel(*j) for j in jobs}
