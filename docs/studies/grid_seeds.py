@@ -1,12 +1,12 @@
 """Issue 2's round-trip grid at several seeds: how often does the whole grid pass, and how many
 of its values miss their 99 % intervals?
 
-Runs exactly the body of ``tests/test_roundtrip.py::test_round_trip_grid_recovers_truth_within
-_99_percent`` (same GRID, same 64 x 48 geometry, same options, medium k at seed + k) at each
-seed given, appends one JSON line per seed to --out (a rerun skips the seeds already there),
-then summarises: grids passed against the count a calibrated method would give
-(Binomial(n, p_all), p_all = 0.99^45 for independent values), and the misses over all values
-against Binomial(45 n, 0.01).
+Runs the grid of ``tests/test_roundtrip.py::test_round_trip_grid_recovers_truth_within
+_99_percent`` through that file's ``grid_scores`` (same media, 64 x 48 geometry and options;
+medium k at seed + k) at each seed given, appends one JSON line per seed to --out (a rerun
+skips the seeds already there), then summarises: grids passed against the count a calibrated
+method would give (Binomial(n, p_all), p_all = 0.99^45 for independent values), and the misses
+over all values against Binomial(45 n, 0.01).
 
   python docs/studies/grid_seeds.py --seeds 100 200 300 400 500 600 700 800 --out rows.jsonl
 
@@ -28,24 +28,15 @@ from scipy.stats import binom
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from conftest import make_spec  # noqa: E402
-from test_roundtrip import GRID  # noqa: E402
-
-from fitmedia.inference.fit import FitOptions  # noqa: E402
-from fitmedia.medium import medium_by_name  # noqa: E402
-from fitmedia.validate import round_trip  # noqa: E402
+from test_roundtrip import grid_scores  # noqa: E402
 
 LEVEL = 0.99
 
 
 def run_seed(seed: int) -> dict:
-    geometry = make_spec(width=64, height=48)
-    t0, scores = time.perf_counter(), []
+    t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (name, ml) in enumerate(GRID):
-            scores += round_trip(geometry, medium_by_name(name), [ml], Path(tmp) / f"r{k}",
-                                 seed=seed + k,
-                                 options=FitOptions(seed=seed + k, progress=False, workers=2))
+        scores = grid_scores(seed, Path(tmp))
     worst = max(scores, key=lambda s: abs(s.pit - 0.5))
     return {"seed": seed, "n_values": len(scores), "wall_s": round(time.perf_counter() - t0, 1),
             "misses": [s.describe() for s in scores if not s.inside(LEVEL)],
