@@ -39,6 +39,9 @@ class Score:
     pit: float  # fraction of posterior samples below the truth
     #: per image: the tank's kappa_t (truth, this channel) x the light-to-front-wall distance
     optical_depth: tuple[float, ...] | None = None
+    #: (median - truth) / sd in the sampler's coordinate (log kappa, atanh g), where the
+    #: posterior is close to normal; None where undefined (see :func:`normal_score`)
+    z_normal: float | None = None
 
     @classmethod
     def from_record(cls, d: dict) -> Score:
@@ -118,8 +121,88 @@ def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str,
             for q in SCORED:
                 s, t = samples[f"{ch}/{q}"], values[q][ch]
                 scores.append(Score(name, tuple(ml), ch, q, t, float(np.median(s)),
-                                    float(np.std(s)), float(np.mean(s < t)), tau))
+                                    float(np.std(s)), float(np.mean(s < t)), tau,
+                                    normal_score(s, t, q)))
     return scores
+
+
+def normal_score(samples: np.ndarray, truth: float, quantity: str) -> float | None:
+    """The truth's distance from the posterior median in posterior standard deviations, in the
+    coordinate the sampler moves in (log kappa for ``kappa_*``, atanh g for ``g``), where the
+    posteriors are close to normal.  Unlike the PIT it resolves the far tails: a few thousand
+    thinned draws cannot tell a quantile of 1e-4 from 1e-3.  None where the transform or the
+    ratio is undefined (a zero kappa, |g| = 1, every sample equal)."""
+    f = np.arctanh if quantity == "g" else np.log
+    with np.errstate(all="ignore"):
+        h, t = f(np.asarray(samples, float)), f(float(truth))
+    sd = float(np.std(h)) if np.all(np.isfinite(h)) else 0.0
+    if not np.isfinite(t) or not sd > 0:
+        return None
+    return float((np.median(h) - t) / sd)
+
+
+#: Family-wise level of a round-trip grid (issue 2's test): a calibrated method puts every
+#: value of the grid inside its simultaneous interval with at least this probability.
+GRID_FAMILY_LEVEL = 0.99
+
+
+@dataclass
+class GridVerdict:
+    """Is a grid of round-trip scores consistent with calibrated posteriors?  See
+    :func:`grid_verdict`."""
+
+    n: int
+    z_limit: float  # |z_normal| beyond this: outside the simultaneous (Bonferroni) interval
+    max_misses_99: int  # most values allowed outside their own 99 % interval
+    outside: list[Score]
+    misses_99: list[Score]
+    worst: Score
+
+    @property
+    def passed(self) -> bool:
+        return not self.outside and len(self.misses_99) <= self.max_misses_99
+
+    def describe(self) -> str:
+        lines = [f"worst: {self.worst.describe()}, normal score {_z_used(self.worst):+.2f}",
+                 f"{len(self.outside)} of {self.n} values outside their simultaneous "
+                 f"{GRID_FAMILY_LEVEL:.0%} intervals (|normal score| > {self.z_limit:.2f})",
+                 f"{len(self.misses_99)} of {self.n} outside their own 99 % intervals "
+                 f"(at most {self.max_misses_99} allowed)"]
+        lines += [f"  outside: {s.describe()}" for s in self.outside]
+        lines += [f"  99 % miss: {s.describe()}" for s in self.misses_99]
+        return "\n".join(lines)
+
+
+def _z_used(s: Score) -> float:
+    """The score's normal score, or its PIT's where that is undefined (clipped at 3.72)."""
+    return s.z if s.z_normal is None else s.z_normal
+
+
+def grid_verdict(scores: Sequence[Score], family_level: float = GRID_FAMILY_LEVEL
+                 ) -> GridVerdict:
+    """Two conditions that a grid of n values from calibrated posteriors meets with probability
+    >= ``family_level`` (about; exactly for independent normal values, tests/test_grid_verdict):
+
+    1. every truth lies inside its simultaneous interval: |normal score| <= z_limit =
+       Phi^-1(1 - (1 - family_level) / (2 n)) (Bonferroni; 3.69 for n = 45), judged by
+       :func:`normal_score` (the PIT's z where that is undefined; NaN counts as outside);
+    2. at most k values lie outside their own central 99 % interval (sample PIT), k the
+       ``family_level`` quantile of Binomial(n, 0.01) (3 for n = 45).
+
+    Asking for every value inside its own 99 % interval instead fails a calibrated method
+    with probability 1 - 0.99^n (0.36 for n = 45): a test that fails a third of the time for
+    correct code (docs/validation.md, "The round-trip grid").
+    """
+    from scipy.stats import binom, norm
+
+    n = len(scores)
+    if n == 0:
+        raise ValueError("grid_verdict: no scores")
+    z_limit = float(norm.isf((1.0 - family_level) / (2 * n)))
+    outside = [s for s in scores if not abs(_z_used(s)) <= z_limit]
+    misses = [s for s in scores if not s.inside(0.99)]
+    worst = max(scores, key=lambda s: abs(_z_used(s)) if np.isfinite(_z_used(s)) else np.inf)
+    return GridVerdict(n, z_limit, int(binom.ppf(family_level, n, 0.01)), outside, misses, worst)
 
 
 def coverage_table(scores: list[Score], levels=LEVELS) -> str:
