@@ -128,6 +128,15 @@ class ParameterSpace:
         a = expit(u1)
         return np.log(self._alb_flat + self._alb_unif * a * (1.0 - a))
 
+    def draw_logit_albedo(self, random, n: int) -> np.ndarray:
+        """``n`` draws of logit albedo from its prior (the mixture of :meth:`log_albedo_prior`)
+        with ``random`` (a numpy RandomState or Generator)."""
+        lo, hi = self.lower[1], self.upper[1]
+        flat = random.uniform(lo, hi, n)
+        unif = logit(random.uniform(expit(lo), expit(hi), n))
+        return np.clip(np.where(random.uniform(0.0, 1.0, n) < ALBEDO_UNIFORM_WEIGHT, unif, flat),
+                       lo, hi)
+
     def physical_samples(self, u: np.ndarray) -> dict[str, np.ndarray]:
         """Samples (..., ndim) -> dict of physical arrays (1/mm)."""
         kt = np.exp(u[..., 0])

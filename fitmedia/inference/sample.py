@@ -43,13 +43,15 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
               lower: np.ndarray, upper: np.ndarray, *, rng: np.random.Generator,
               checkpoint: Path | None = None, resume: bool = False,
               n_walkers: int | None = None, n_tau: float = 50.0, max_steps: int = 20000,
-              check_every: int = 100, progress: bool = True, label: str = "") -> ChainResult:
+              check_every: int = 100, progress: bool = True, label: str = "",
+              redraw: Redraw | None = None) -> ChainResult:
     """Run emcee until the chain is ``n_tau`` autocorrelation times long.
 
     Converged means: steps >= n_tau * max(tau), the tau estimate changed by less
     than 5 % since the previous check, the split R-hat across walker groups is
     <= 1.01 and the bulk ESS >= 400 (ArviZ).  With ``resume`` and an existing
     checkpoint, sampling continues from its last state (no steps repeated).
+    ``redraw``: a coordinate redrawn from its prior in a share of the steps (:class:`Redraw`).
     """
     import emcee
     from tqdm.auto import tqdm
@@ -74,7 +76,9 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     # sqrt(|delta|) instead of |delta| (fixed upstream after 3.1.6, dfm/emcee#531): its stationary
     # distribution is too narrow.  Mixed in at 20 % it made our posteriors 5-9 % narrower than
     # importance sampling and random-walk Metropolis found (docs/inference.md, "Posterior").
-    moves = emcee.moves.DEMove()
+    moves = [(emcee.moves.DEMove(), 1.0)]
+    if redraw is not None:
+        moves = [(emcee.moves.DEMove(), 1.0 - redraw.weight), (redraw.move(), redraw.weight)]
     sampler = emcee.EnsembleSampler(n_walkers, ndim, log_prob, moves=moves, backend=backend)
     # emcee draws from a numpy RandomState; seed it from our Generator (explicit, reproducible);
     # a resumed chain continues with the random state stored in its checkpoint
@@ -127,6 +131,22 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     ess, rhat = arviz_diagnostics(chain)
     return ChainResult(samples, n_steps, np.asarray(tau), float(np.mean(sampler.acceptance_fraction)),
                        converged, reason, burn, thin, logp, chain, ess, rhat)
+
+
+@dataclass(frozen=True)
+class Redraw:
+    """An extra Metropolis-Hastings move for the chains, used in a share ``weight`` of the
+    steps beside differential evolution.  ``propose(coords, random)`` returns the proposed
+    coordinates (walkers, ndim) and log q(x | x') - log q(x' | x) per walker, as
+    ``emcee.moves.MHMove`` expects (:func:`fitmedia.inference.fit.albedo_redraw`)."""
+
+    propose: Callable
+    weight: float = 0.1
+
+    def move(self):
+        import emcee
+
+        return emcee.moves.MHMove(self.propose)
 
 
 def half_space(log_prob: Callable[[np.ndarray], float], index: int, side: float
