@@ -9,11 +9,12 @@ install:
 demo: install
 	fitmedia demo --out out/demo
 
+# two pytest workers: CI has 2 cores, and most tests use one
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist worksteal
 
 test-fast:
-	$(PY) -m pytest -q -m "not slow and not mitsuba"
+	$(PY) -m pytest -q -n 2 --dist worksteal -m "not slow and not mitsuba"
 
 bench:
 	$(PY) bench/forward_single.py

@@ -12,17 +12,20 @@ from fitmedia.pipeline import fit
 from fitmedia.synth import synthesize
 from conftest import make_spec
 
-ML = [8, 16, 32, 64]
+ML = [8, 16]
 
 
 @pytest.mark.slow
 def test_dilution_series_beats_every_single_image(tmp_path, seed):
-    """Synthetic round trip: four concentrations of espresso fitted jointly (kappa_a and kappa_s
+    """Synthetic round trip: two concentrations of espresso fitted jointly (kappa_a and kappa_s
     proportional to concentration, g shared) give narrower 90 % intervals for kappa_s, kappa_t
-    and g than the fit of any one of the images alone, and their 99 % intervals (posterior
-    samples) still contain the truth (9 checks: at 90 % one would miss by chance half the time)."""
+    and g than the fit of either image alone, and their 99 % intervals (posterior samples)
+    still contain the truth (9 checks: at 90 % one would miss by chance half the time).
+    Until 2026-11-30 four concentrations (8-64 ml) at 48 x 36: 821 s on this session's 2-core
+    machine, too much of CI's 30 minutes; two at 40 x 30 take 289 s (width ratios joint /
+    single 0.56-0.78 at seed 12345; four at 40 x 30 gave 0.40-0.69)."""
     truth = medium_by_name("Espresso")
-    spec = synthesize(make_spec(width=48, height=36), tmp_path / "cap", truth, ML, seed=seed)
+    spec = synthesize(make_spec(width=40, height=30), tmp_path / "cap", truth, ML, seed=seed)
     opts = FitOptions(seed=seed, progress=False, workers=2, max_steps=6000)
     joint = fit(spec, tmp_path / "joint", opts, report=False)
     samples = np.load(tmp_path / "joint" / "samples.npz")

@@ -17,13 +17,13 @@ from conftest import geometry_dict
 
 def _fit_cmd(spec, out, *extra):
     return [sys.executable, "-m", "fitmedia.cli", "fit", str(spec), "--out", str(out), "--seed", "4",
-            "--quiet", "--no-report", "--workers", "1", "--n-tau", "1e6", "--max-steps", "600",
+            "--quiet", "--no-report", "--workers", "1", "--n-tau", "1e6", "--max-steps", "300",
             *extra]
 
 
 def _start_and_kill(spec, out, checkpoint_name):
-    """Start a fit into ``out`` and `kill -9` it once its ``checkpoint_name`` holds 200 steps
-    (the run must have stopped before its 600 steps, without a results.json)."""
+    """Start a fit into ``out`` and `kill -9` it once its ``checkpoint_name`` holds 100 steps
+    (the run must have stopped before its 300 steps, without a results.json)."""
     proc = subprocess.Popen(_fit_cmd(spec, out), stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     ckpt = out / checkpoint_name
@@ -31,25 +31,25 @@ def _start_and_kill(spec, out, checkpoint_name):
     while time.time() < deadline:
         if ckpt.exists():
             try:
-                if int(np.load(ckpt)["iteration"]) >= 200:
+                if int(np.load(ckpt)["iteration"]) >= 100:
                     break
             except (OSError, ValueError, KeyError):  # being replaced right now
                 pass
         time.sleep(0.05)
     else:
         proc.kill()
-        pytest.fail(f"no {checkpoint_name} with 200 steps within 300 s")
+        pytest.fail(f"no {checkpoint_name} with 100 steps within 300 s")
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert proc.returncode == -signal.SIGKILL
     assert not (out / "results.json").exists()
-    assert 200 <= int(np.load(ckpt)["iteration"]) < 600
+    assert 100 <= int(np.load(ckpt)["iteration"]) < 300
 
 
 @pytest.mark.slow
 def test_kill_9_and_resume_gives_the_uninterrupted_chain(tmp_path):
     """A real `kill -9` of the fitting process while channel R samples; `--resume` completes
-    every channel to exactly the requested 600 steps, and each chain equals, step for step, the
+    every channel to exactly the requested 300 steps, and each chain equals, step for step, the
     chain of an uninterrupted run with the same seed (no step lost or repeated)."""
     from fitmedia.cli import main
 
@@ -70,7 +70,7 @@ def test_kill_9_and_resume_gives_the_uninterrupted_chain(tmp_path):
     for ch in "RGB":
         a = np.load(tmp_path / "killed" / f"checkpoint_{ch}.npz")["chain"]
         b = np.load(tmp_path / "whole" / f"checkpoint_{ch}.npz")["chain"]
-        assert a.shape[0] == 600
+        assert a.shape[0] == 300
         np.testing.assert_array_equal(a, b)
 
 
@@ -103,7 +103,7 @@ def test_kill_during_either_mode_and_resume(tmp_path, watched):
     for name in ("checkpoint_R.npz", "checkpoint_R_mode2.npz"):
         a = np.load(tmp_path / "killed" / name)["chain"]
         b = np.load(tmp_path / "whole" / name)["chain"]
-        assert a.shape[0] == 600
+        assert a.shape[0] == 300
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(np.load(tmp_path / "killed" / "samples.npz")["R/g"],
                                   np.load(tmp_path / "whole" / "samples.npz")["R/g"])
