@@ -51,7 +51,7 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     than 5 % since the previous check, the split R-hat across walker groups is
     <= 1.01 and the bulk ESS >= 400 (ArviZ).  With ``resume`` and an existing
     checkpoint, sampling continues from its last state (no steps repeated).
-    ``redraw``: a coordinate redrawn from its prior in a share of the steps (:class:`Redraw`).
+    ``redraw``: an extra Metropolis-Hastings move beside differential evolution (:class:`Redraw`).
     """
     import emcee
     from tqdm.auto import tqdm
@@ -76,9 +76,9 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     # sqrt(|delta|) instead of |delta| (fixed upstream after 3.1.6, dfm/emcee#531): its stationary
     # distribution is too narrow.  Mixed in at 20 % it made our posteriors 5-9 % narrower than
     # importance sampling and random-walk Metropolis found (docs/inference.md, "Posterior").
-    moves = [(emcee.moves.DEMove(), 1.0)]
+    moves = [(emcee.moves.DEMove(), 1.0 - (0.0 if redraw is None else redraw.weight))]
     if redraw is not None:
-        moves = [(emcee.moves.DEMove(), 1.0 - redraw.weight), (redraw.move(), redraw.weight)]
+        moves.append((redraw.move(), redraw.weight))
     sampler = emcee.EnsembleSampler(n_walkers, ndim, log_prob, moves=moves, backend=backend)
     # emcee draws from a numpy RandomState; seed it from our Generator (explicit, reproducible);
     # a resumed chain continues with the random state stored in its checkpoint
@@ -141,7 +141,7 @@ class Redraw:
     ``emcee.moves.MHMove`` expects (:func:`fitmedia.inference.fit.albedo_redraw`)."""
 
     propose: Callable
-    weight: float = 0.1
+    weight: float
 
     def move(self):
         import emcee
