@@ -281,3 +281,28 @@ def test_albedo_move_on_a_plateau_posterior(rng, proposal_density):
     # the KS distribution at the effective sample size: the thinned draws are still correlated
     ks_ok = stats.kstwobign.sf(stats.kstest(u, cdf).statistic * np.sqrt(n_eff)) > 1e-3
     assert (tail_ok and ks_ok) == proposal_density, (np.mean(u > 4.0), p_tail, n_eff)
+
+
+def test_walkers_start_where_the_posterior_is_not_negligible(rng):
+    """The plateau posterior with a Laplace covariance 10 units wide in logit albedo (a milky
+    or thin channel's): the plain ball (negative control) clips walkers to the albedo's lower
+    bound, 10^5-10^6 log-posterior units below the MAP; ``start_walkers`` moves every such
+    walker to the MAP, so all start within START_MAX_DROP of it, and keeps the others."""
+    from fitmedia.inference.sample import START_MAX_DROP, initial_ball, start_walkers
+
+    space, log_post, _ = _plateau_problem()
+    x0 = np.array([PLATEAU["m_t"], 1.5, PLATEAU["g"], 0.0])
+    res = find_map(log_post, x0, space.lower, space.upper, global_evals=0)
+    cov = res.cov.copy()
+    cov[1, :] = cov[:, 1] = 0.0
+    cov[1, 1] = 100.0
+    lp_map = log_post(res.x)
+    ball = initial_ball(res.x, cov, space.lower, space.upper, 64, np.random.default_rng(7))
+    drop = lp_map - np.array([log_post(p) for p in ball])
+    assert np.sum(drop > START_MAX_DROP) >= 5
+    start = start_walkers(log_post, res.x, cov, space.lower, space.upper, 64,
+                          np.random.default_rng(7))
+    drop_start = lp_map - np.array([log_post(p) for p in start])
+    assert np.all(drop_start <= START_MAX_DROP)
+    kept = drop <= START_MAX_DROP
+    np.testing.assert_array_equal(start[kept], ball[kept])

@@ -39,6 +39,32 @@ def initial_ball(x_map: np.ndarray, cov: np.ndarray | None, lower: np.ndarray, u
     return np.clip(p, lower + 1e-6 * span, upper - 1e-6 * span)
 
 
+#: A walker whose starting log posterior is this far below the MAP's starts at the MAP
+#: instead: a normal ball puts 4 parameters at most ~17 below (chi-square(4) / 2 at 1e-6)
+START_MAX_DROP = 25.0
+
+
+def start_walkers(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray,
+                  cov: np.ndarray | None, lower: np.ndarray, upper: np.ndarray, n_walkers: int,
+                  rng: np.random.Generator) -> np.ndarray:
+    """The chain's first positions: :func:`initial_ball`, with every walker whose log posterior
+    is more than ``START_MAX_DROP`` below the MAP's (or not finite: outside a mode's half of
+    g, see :func:`half_space`) moved to the MAP, jittered by 1e-6 of the box.  Such walkers
+    come from a Laplace covariance that is wide along a plateau (a thin or milky albedo) and
+    are clipped to the prior's bounds far out; an outlier walker can stay out for good, since
+    differential-evolution steps are scaled by the other walkers' spread (a Lowfat Milk B
+    chain at 200 x 150 kept one at kappa_t / 250, log posterior 2e6 below, with the albedo
+    move, whose kappa_s-keeping jumps drag kappa_t along)."""
+    start = initial_ball(x_map, cov, lower, upper, n_walkers, rng)
+    lp_map = log_prob(x_map)
+    bad = ~(np.array([log_prob(p) for p in start]) > lp_map - START_MAX_DROP)
+    if np.any(bad):
+        span = upper - lower
+        start[bad] = x_map + 1e-6 * span * rng.standard_normal((int(bad.sum()), len(x_map)))
+        start[bad] = np.clip(start[bad], lower, upper)
+    return start
+
+
 def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: np.ndarray | None,
               lower: np.ndarray, upper: np.ndarray, *, rng: np.random.Generator,
               checkpoint: Path | None = None, resume: bool = False,
@@ -62,14 +88,7 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     restored = load_checkpoint(checkpoint, backend) if (resume and checkpoint is not None) else None
     if restored is None:
         backend.reset(n_walkers, ndim)
-        start = initial_ball(x_map, cov, lower, upper, n_walkers, rng)
-        # walkers that start where the posterior is zero (outside a mode's half of g, see
-        # `half_space`) start at the MAP instead, jittered by 1e-6 of the box
-        bad = ~np.isfinite([log_prob(p) for p in start])
-        if np.any(bad):
-            span = upper - lower
-            start[bad] = x_map + 1e-6 * span * rng.standard_normal((int(bad.sum()), ndim))
-            start[bad] = np.clip(start[bad], lower, upper)
+        start = start_walkers(log_prob, x_map, cov, lower, upper, n_walkers, rng)
     else:
         n_walkers, start = backend.nwalkers, restored
     # differential evolution only.  emcee <= 3.1.6's DESnookerMove normalises its direction by
