@@ -73,7 +73,8 @@ def summarise(rows: list[dict]) -> None:
               f"(expected {0.989 * len(judged):.1f}, P(<= {v_pass}) = "
               f"{binom.cdf(v_pass, len(judged), 0.989):.3f})")
     for r in rows:
-        print(f"  seed {r['seed']}: {'passes' if not r['misses'] else 'fails'} ({r['wall_s']} s); "
+        print(f"  seed {r['seed']}: every value inside its own interval: "
+              f"{'yes' if not r['misses'] else 'no'} ({r['wall_s']} s); "
               f"worst: {r['worst']}")
         if "verdict" in r:
             print("    grid_verdict: " + ("passes" if r["verdict_passed"] else "FAILS") + "; "
@@ -97,8 +98,9 @@ def main(argv=None) -> None:
         rows.append(row)
         with open(out, "a") as f:  # one line per seed: a killed run loses at most the seed
             f.write(json.dumps(row) + "\n")
-        print(f"seed {s}: {'passes' if not row['misses'] else 'fails'} ({row['wall_s']} s)",
-              flush=True)
+        print(f"seed {s}: grid_verdict {'passes' if row['verdict_passed'] else 'FAILS'}; "
+              f"{len(row['misses'])} of {row['n_values']} outside their own "
+              f"{LEVEL:.0%} intervals ({row['wall_s']} s)", flush=True)
     summarise([r for r in rows if r["seed"] in set(a.seeds)])
 
 
