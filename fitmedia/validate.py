@@ -131,14 +131,31 @@ def normal_score(samples: np.ndarray, truth: float, quantity: str) -> float | No
     coordinate the sampler moves in (log kappa for ``kappa_*``, atanh g for ``g``), where the
     posteriors are close to normal.  Unlike the PIT it resolves the far tails: a few thousand
     thinned draws cannot tell a quantile of 1e-4 from 1e-3.  None where the transform or the
-    ratio is undefined (a zero kappa, |g| = 1, every sample equal)."""
+    ratio is undefined (a zero kappa, |g| = 1, every sample equal: a spread at most
+    :data:`DEGENERATE_SPREAD` of the samples' scale, so that the last bit of a sum, which
+    differs between CPUs, cannot turn equal samples into a score of 1e15)."""
     f = np.arctanh if quantity == "g" else np.log
+    x = np.asarray(samples, float)
     with np.errstate(all="ignore"):
-        h, t = f(np.asarray(samples, float)), f(float(truth))
-    sd = float(np.std(h)) if np.all(np.isfinite(h)) else 0.0
-    if not np.isfinite(t) or not sd > 0:
+        h, t = f(x), f(float(truth))
+    # degeneracy judged on the samples themselves: rounding is relative to their scale (kappa
+    # = 1 +- 1e-16 has log kappa ~ 1e-16, whose spread is not small next to its own scale)
+    if not (h.size and np.all(np.isfinite(h)) and np.isfinite(t)) or is_degenerate(x):
         return None
-    return float((np.median(h) - t) / sd)
+    return float((np.median(h) - t) / np.std(h))
+
+
+#: A spread of samples at most this fraction of their scale (largest |value|) is rounding
+#: error, not a spread: np.std of 10 equal values is 0 or 1e-16 depending on the CPU's sums.
+#: 1e-9 is ~1e7 ulps, far above the error of any sum here and far below a posterior's sd.
+DEGENERATE_SPREAD = 1e-9
+
+
+def is_degenerate(samples: np.ndarray) -> bool:
+    """Are the (finite) ``samples`` all equal up to rounding, i.e. is their standard deviation
+    at most :data:`DEGENERATE_SPREAD` times their largest absolute value (or exactly 0)?"""
+    a = np.asarray(samples, float)
+    return bool(np.std(a) <= DEGENERATE_SPREAD * float(np.max(np.abs(a), initial=0.0)))
 
 
 #: Family-wise level of a round-trip grid (issue 2's test): a calibrated method puts every

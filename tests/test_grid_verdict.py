@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.stats import binom, norm
 
-from fitmedia.validate import Score, grid_verdict, normal_score
+from fitmedia.validate import Score, grid_verdict, is_degenerate, normal_score
 
 N_VALUES = 45  # the grid of tests/test_roundtrip.py: 5 media x 3 channels x 3 quantities
 
@@ -90,3 +90,40 @@ def test_normal_score_against_analytic(rng):
     assert normal_score(g, np.tanh(np.arctanh(0.9) + 0.1), "g") == pytest.approx(-2.0, abs=0.02)
     assert normal_score(kappa, 0.0, "kappa_s") is None
     assert normal_score(np.full(10, 0.5), 0.4, "g") is None
+
+
+@pytest.mark.parametrize("quantity, value", [("g", 0.5), ("g", 0.0), ("kappa_t", 0.02),
+                                             ("kappa_s", 1.0)])
+def test_equal_samples_have_no_normal_score(rng, quantity, value):
+    """Equal samples give None however their sum rounds: exactly equal, and equal up to a
+    perturbation of 1e-16 relative (np.std of such samples is ~1e-16, which an exact test
+    ``sd > 0`` turned into a score of ~1e15 on some CPUs).  Independent check: samples with a
+    real spread (1e-6 relative, far above rounding) keep their analytic score."""
+    exact = np.full(10, value)
+    assert normal_score(exact, 0.4, quantity) is None
+    bumped = exact * (1.0 + 1e-16 * rng.standard_normal(10)) + 1e-300
+    assert normal_score(bumped, 0.4, quantity) is None
+    assert is_degenerate(exact) and is_degenerate(bumped)
+    if value != 0.0:
+        f = np.arctanh if quantity == "g" else np.log
+        h = f(value) + 1e-6 * np.array([-1.0, 1.0] * 5)  # sd 1e-6, median f(value)
+        x = np.tanh(h) if quantity == "g" else np.exp(h)
+        expected = (f(value) - f(0.4)) / np.std(h)
+        assert normal_score(x, 0.4, quantity) == pytest.approx(expected, rel=1e-6)
+        assert not is_degenerate(x)
+
+
+def test_report_gives_no_digits_to_a_rounding_width():
+    """The report's table (format_estimate) shows a posterior whose 68 % width is rounding
+    error (1e-16) to 3 significant digits, as it shows an exactly zero width, instead of
+    12 decimals; a real width (2e-3) still sets the decimals (second case: independent, by
+    hand)."""
+    from fitmedia.report.html import format_estimate
+
+    def entry(width):
+        return {"map": 0.5, "median": 0.5, "q05": 0.5 - width, "q16": 0.5 - width / 2,
+                "q84": 0.5 + width / 2, "q95": 0.5 + width}
+
+    assert format_estimate(entry(0.0))["estimate"] == "0.500"
+    assert format_estimate(entry(1e-16))["estimate"] == "0.500"
+    assert format_estimate(entry(2e-3))["estimate"] == "0.5000"

@@ -144,7 +144,9 @@ def format_estimate(entry: dict, scale: float = 1.0) -> dict[str, str]:
         return {"estimate": text, "q68": "&mdash;", "q90": "&mdash;", "map": text}
     lo, hi = min(qs + [v["median"]]), max(qs + [v["median"]])
     width = v["q84"] - v["q16"]
-    if lo > 0 and hi / lo > 10 or width <= 0:
+    # a width within rounding of 0 (equal samples: 1e-16 or 0 depending on the CPU's sums) has
+    # no digits to give: compared with the values' scale, as fitmedia.validate.is_degenerate
+    if lo > 0 and hi / lo > 10 or width <= 1e-9 * max(abs(lo), abs(hi)):
         def f(x: float | None) -> str:
             return format_sig(x, 3)
     elif max(abs(lo), abs(hi)) < 1e-3 or max(abs(lo), abs(hi)) >= 1e6:
