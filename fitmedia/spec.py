@@ -422,17 +422,105 @@ def parse_spec(data: Any, *, source: str = "<spec>", base: Path | None = None,
     return spec
 
 
+#: Deepest nesting of a spec's YAML (the contract's deepest field is 4 levels down)
+MAX_YAML_DEPTH = 32
+#: Most nodes a spec's YAML may expand to, aliases counted at every use (a spec has ~100;
+#: a "billion laughs" alias bomb expands to 1e9 and would hang every walk of the data)
+MAX_YAML_NODES = 10_000
+
+
+class _SpecYAMLError(yaml.MarkedYAMLError):
+    """A spec's YAML that is valid YAML but not acceptable as a spec (docs/spec.md, "YAML")."""
+
+
+class SpecLoader(yaml.SafeLoader):
+    """yaml.SafeLoader that refuses, with the line: duplicate keys (naming both lines), keys
+    that are not strings (``2024: x``), nesting deeper than :data:`MAX_YAML_DEPTH`, and aliases
+    that expand the document beyond :data:`MAX_YAML_NODES` nodes or refer to themselves."""
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self._depth = 0
+
+    def compose_node(self, parent, index):
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise _SpecYAMLError(problem=f"nested more than {MAX_YAML_DEPTH} levels deep",
+                                     problem_mark=self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def get_single_node(self):
+        node = super().get_single_node()
+        if node is not None:
+            _check_expansion(node)
+        return node
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen: dict = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                line = key_node.start_mark.line + 1
+                if not isinstance(key, str):
+                    raise _SpecYAMLError(problem=f"the key {key!r} is not text ({type(key).__name__}"
+                                         "): field names are words", problem_mark=key_node.start_mark)
+                if key in seen:
+                    raise _SpecYAMLError(problem=f"duplicate key '{key}' (lines {seen[key]} and "
+                                         f"{line}); give each field once",
+                                         problem_mark=key_node.start_mark)
+                seen[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+def _check_expansion(root: yaml.Node) -> None:
+    """Refuse a node graph (aliases share nodes) whose expanded tree has more than
+    MAX_YAML_NODES nodes or MAX_YAML_DEPTH levels, or a cycle; linear in the graph's size
+    (sizes memoised per node, iterative: no recursion limit)."""
+    size: dict[int, tuple[int, int]] = {}  # id(node) -> (expanded nodes, expanded depth)
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    open_: set[int] = set()
+    while stack:
+        node, done = stack.pop()
+        kids = ([n for pair in node.value for n in pair] if isinstance(node, yaml.MappingNode)
+                else node.value if isinstance(node, yaml.SequenceNode) else [])
+        if done:
+            open_.discard(id(node))
+            n = 1 + sum(size[id(k)][0] for k in kids)
+            d = 1 + max((size[id(k)][1] for k in kids), default=0)
+            if n > MAX_YAML_NODES or d > MAX_YAML_DEPTH:
+                what = (f"expands to more than {MAX_YAML_NODES} values" if n > MAX_YAML_NODES
+                        else f"is nested more than {MAX_YAML_DEPTH} levels deep")
+                raise _SpecYAMLError(problem=f"the document {what} through its aliases (*name); "
+                                     "write the values out", problem_mark=node.start_mark)
+            size[id(node)] = (n, d)
+            continue
+        if id(node) in size:
+            continue
+        if id(node) in open_:
+            raise _SpecYAMLError(problem="an alias refers to a node that contains it",
+                                 problem_mark=node.start_mark)
+        open_.add(id(node))
+        stack.append((node, True))
+        stack.extend((k, False) for k in kids if id(k) not in size)
+
+
 def load_spec(path: str | Path, *, require_images: bool = True) -> Spec:
-    """Read and validate a capture spec file (YAML)."""
+    """Read and validate a capture spec file (YAML, read by :class:`SpecLoader`)."""
     path = Path(path)
     if not path.is_file():
         raise SpecError(str(path), "", "file not found")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(), Loader=SpecLoader)  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         loc = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        raise SpecError(str(path), "", f"not valid YAML: {loc}{getattr(exc, 'problem', exc)}") from None
+        what = "YAML not accepted" if isinstance(exc, _SpecYAMLError) else "not valid YAML"
+        raise SpecError(str(path), "", f"{what}: {loc}{getattr(exc, 'problem', exc)}") from None
     except UnicodeDecodeError:
         raise SpecError(str(path), "", "not a text file") from None
     return parse_spec(data, source=str(path), base=path.parent, require_images=require_images)

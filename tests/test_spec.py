@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from fitmedia.errors import SpecError
-from fitmedia.spec import load_spec, parse_spec
+from fitmedia.spec import SpecLoader, load_spec, parse_spec
 
 EXAMPLE = textwrap.dedent("""
     fitmedia_spec: 1
@@ -154,6 +154,49 @@ def test_broken_yaml_and_missing_file(tmp_path):
         load_spec(bad)
     with pytest.raises(SpecError, match="file not found"):
         load_spec(tmp_path / "nope.yaml")
+
+
+_BOMB = "\n".join([f"l0: &l0 [{', '.join(['lol'] * 9)}]"]
+                  + [f"l{k}: &l{k} [{', '.join([f'*l{k - 1}'] * 9)}]" for k in range(1, 10)])
+
+
+@pytest.mark.parametrize("text, words", [
+    ("fitmedia_spec: 1\ncamera:\n  fx: 120\n  fy: 120\n  fx: 240\n",
+     ["duplicate key 'fx'", "lines 3 and 5", "line 5"]),
+    ("fitmedia_spec: 1\n2024: x\n", ["2024", "not text", "line 2"]),
+    ("x: " + "[" * 3000 + "]" * 3000 + "\n", ["nested more than 32 levels", "line 1"]),
+    (_BOMB, ["expands to more than 10000 values", "aliases"]),
+    ("a: &a [1, *a]\n", ["refers to a node that contains it"]),
+    ("a: !!python/object/apply:os.system [echo hi]\n", ["not valid YAML", "python/object"]),
+])
+def test_yaml_that_is_not_a_spec_is_refused_fast(tmp_path, text, words):
+    """Duplicate keys (the last one used to win: fx 240 for 120, kappa_s x37), a key that is
+    not text, deep nesting (a RecursionError traceback), an alias bomb of 9^10 values (a hang)
+    and a cyclic alias are refused with the line, each well under a second; the reference is
+    the YAML text itself (lines counted by hand)."""
+    import time
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    t0 = time.perf_counter()
+    with pytest.raises(SpecError) as exc:
+        load_spec(bad)
+    assert time.perf_counter() - t0 < 2.0
+    msg = str(exc.value)
+    assert "\n" not in msg and all(w in msg for w in words), msg
+
+
+def test_yaml_anchors_and_merge_keys_within_budget_still_work(tmp_path):
+    """An anchor reused for a small value, and a merge key overriding a merged field (not a
+    duplicate), load as plain YAML would (yaml.safe_load is the reference)."""
+    import yaml
+
+    text = EXAMPLE.replace("position: [0, 0, 900]", "position: &cam [0, 0, 900]") + \
+        "name2: &n {a: 1, b: 2}\n"
+    data = yaml.load(text, Loader=SpecLoader)
+    assert data == yaml.safe_load(text)
+    merged = yaml.load("x: &x {a: 1, b: 2}\ny:\n  <<: *x\n  a: 3\n", Loader=SpecLoader)
+    assert merged["y"] == {"a": 3, "b": 2}
 
 
 def test_overrides_and_brackets():
