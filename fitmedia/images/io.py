@@ -96,16 +96,98 @@ def _read_cv2(path: Path) -> np.ndarray:
     return arr
 
 
-def _read_raw(path: Path) -> np.ndarray:
+@dataclass(frozen=True)
+class Frame:
+    """One file's pixels in file units, and what its saturation is judged on.
+
+    Attributes
+    ----------
+    data : ndarray of shape (H, W, 3), float64
+        Channels R, G, B in file units; for RAW, sensor DN above the file's black level
+        (negative values kept).
+    peak : ndarray of shape (H, W, 3)
+        The stored values saturation is judged on: for RAW the largest raw sensor value
+        (black included) among the photosites binned into the pixel; else the file's value.
+    level : float or None
+        The saturation level in ``peak`` units: the RAW file's white level, the integer
+        type's maximum, None for floating point.
+    samples : ndarray of shape (3,)
+        Stored samples averaged into one pixel per channel (binned Bayer: 1, 2, 1).
+    quantum : float
+        Step of one stored sample in ``data`` units (1 for integer files; 0 for float).
+    """
+
+    data: np.ndarray
+    peak: np.ndarray
+    level: float | None
+    samples: np.ndarray
+    quantum: float
+
+
+def _bin_bayer(path: Path, img: np.ndarray, colors: np.ndarray, black: np.ndarray,
+               desc: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bin each 2x2 Bayer quad into one RGB pixel (no interpolation).
+
+    ``img`` holds raw sensor values, ``colors`` each site's colour index into ``desc``
+    (e.g. 'RGBG') and ``black`` the black level per colour index.  Returns the mean
+    signal above black per channel, the largest raw value per channel (for saturation)
+    and the number of sites averaged per channel.
+    """
+    h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
+    pattern = colors[:2, :2]
+    tiled = np.tile(pattern, (h // 2, w // 2))
+    if h < 2 or w < 2 or not np.array_equal(colors[:h, :w], tiled):
+        raise ImageError(f"{path}: the colour filter is not a 2x2 Bayer mosaic; fitmedia bins "
+                         "2x2 quads and cannot read this sensor layout")
+    data = np.zeros((h // 2, w // 2, 3))
+    peak = np.zeros((h // 2, w // 2, 3))
+    count = np.zeros(3)
+    for i in (0, 1):
+        for j in (0, 1):
+            letter = desc[int(pattern[i, j])]
+            if letter not in "RGB":
+                raise ImageError(f"{path}: colour filter '{desc}' is not R, G, B; fitmedia "
+                                 "reads RGB Bayer sensors only")
+            ch = "RGB".index(letter)
+            site = img[i:h:2, j:w:2]
+            data[..., ch] += site - black[int(pattern[i, j])]
+            peak[..., ch] = np.maximum(peak[..., ch], site)
+            count[ch] += 1
+    if not np.all(count > 0):
+        raise ImageError(f"{path}: the 2x2 colour filter '{desc}' lacks one of R, G, B")
+    return data / count, peak, count
+
+
+def _read_raw(path: Path) -> Frame:
+    """A camera RAW file in sensor units, exactly (docs/spec.md, "Camera RAW").
+
+    LibRaw only unpacks: no scaling, brightening, white balance or interpolation.  A
+    Bayer file is binned per 2x2 quad; a LinearRaw file (three samples per pixel) is
+    read as is.  The per-channel black levels are subtracted, negative values kept.
+    """
     import rawpy
 
     try:
         with rawpy.imread(str(path)) as raw:
-            return raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16,
-                                   use_camera_wb=False, user_wb=[1.0, 1.0, 1.0, 1.0],
-                                   output_color=rawpy.ColorSpace.raw)
-    except (rawpy.LibRawError, OSError, MemoryError) as exc:
+            img = np.array(raw.raw_image_visible, dtype=np.float64)
+            black = np.asarray(raw.black_level_per_channel, dtype=np.float64)
+            white = float(raw.white_level)
+            desc = raw.color_desc.decode(errors="replace")
+            flat = raw.raw_type == rawpy.RawType.Flat
+            colors = np.array(raw.raw_colors_visible) if flat else None
+    except (rawpy.LibRawError, OSError, MemoryError, ValueError) as exc:
         raise ImageError(f"{path}: not a readable camera RAW file ({_why(exc)})") from None
+    if flat:
+        data, peak, count = _bin_bayer(path, img, colors, black, desc)
+    else:
+        if img.ndim != 3 or img.shape[2] < 3 or desc[:3] != "RGB":
+            raise ImageError(f"{path}: a RAW file with samples '{desc}' of shape {img.shape}; "
+                             "fitmedia reads RGB Bayer or three-sample LinearRaw files")
+        peak = img[..., :3]
+        data, count = peak - black[:3], np.ones(3)
+    if not white > 0:
+        raise ImageError(f"{path}: the RAW file gives no white level")
+    return Frame(data, peak, white, count, 1.0)
 
 
 def _read_any(path: str | Path) -> np.ndarray:
@@ -119,7 +201,7 @@ def _read_any(path: str | Path) -> np.ndarray:
     elif ext in PNG_EXT or ext in EXR_EXT:
         arr = _read_cv2(path)
     elif ext in RAW_EXT:
-        arr = _read_raw(path)
+        raise ImageError(f"{path}: a camera RAW file cannot be used here (only as an image)")
     else:
         known = sorted(TIFF_EXT | PNG_EXT | EXR_EXT) + ["camera RAW (.dng, .cr2, .nef, .arw, ...)"]
         raise ImageError(f"{path}: unknown image type '{ext}'; expected one of {', '.join(known)}")
@@ -137,24 +219,11 @@ def _read_any(path: str | Path) -> np.ndarray:
     return arr
 
 
-def read_image(path: str | Path) -> tuple[np.ndarray, float | None]:
-    """Read one linear RGB image file.
+def read_frame(path: str | Path) -> Frame:
+    """Read one image file as a :class:`Frame` (channels R, G, B in file units).
 
-    Parameters
-    ----------
-    path : str or Path
-        A ``.tif``/``.tiff`` (16-bit or float), ``.png`` (8- or 16-bit), ``.exr``
-        or camera RAW file.  RAW files are decoded linearly by rawpy in the
-        camera's own colour space (no white balance, no colour matrix, no
-        brightening, 16-bit output).  An alpha channel is dropped.
-
-    Returns
-    -------
-    image : ndarray of shape (H, W, 3), float64
-        Channels R, G, B in file units.
-    level : float or None
-        The saturation level in file units implied by the pixel type: 65535 for
-        16-bit files and RAW, 255 for 8-bit, None for floating point.
+    TIFF, PNG and OpenEXR files: the stored values (an alpha channel is dropped);
+    camera RAW: sensor DN above black, Bayer quads binned (:func:`_read_raw`).
 
     Raises
     ------
@@ -162,13 +231,34 @@ def read_image(path: str | Path) -> tuple[np.ndarray, float | None]:
         Missing, unreadable or truncated file; unknown extension; not 3 or 4
         channels; NaN or infinite values.
     """
+    path = Path(path)
+    if path.suffix.lower() in RAW_EXT:
+        if not path.is_file():
+            raise ImageError(f"{path}: file not found")
+        return _read_raw(path)
     arr = _read_any(path)
     nch = 1 if arr.ndim == 2 else arr.shape[2]
     if nch not in (3, 4):
         raise ImageError(f"{path}: has {nch} channel{'s' if nch > 1 else ''}; an RGB image "
                          "(3 channels, or 4 with alpha) is needed")
     level = _LEVELS.get(arr.dtype)
-    return arr[..., :3].astype(np.float64), level
+    rgb = arr[..., :3]
+    return Frame(rgb.astype(np.float64), rgb, level, np.ones(3), 0.0 if level is None else 1.0)
+
+
+def read_image(path: str | Path) -> tuple[np.ndarray, float | None]:
+    """Read one linear RGB image file: :func:`read_frame`'s data and saturation level.
+
+    Returns
+    -------
+    image : ndarray of shape (H, W, 3), float64
+        Channels R, G, B in file units (RAW: sensor DN above black, 2x2 quads binned).
+    level : float or None
+        The saturation level: 65535 for 16-bit files, 255 for 8-bit, the white level
+        of a RAW file (a raw sensor value, black included), None for floating point.
+    """
+    frame = read_frame(path)
+    return frame.data, frame.level
 
 
 def _read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
@@ -236,12 +326,24 @@ class LoadedImage:
     source: str
 
 
-def _frame(path: Path, shape: tuple[int, int], what: str) -> tuple[np.ndarray, float | None]:
-    img, level = read_image(path)
-    if img.shape[:2] != tuple(shape):
-        raise ImageError(f"{path}: {what} is {img.shape[1]}x{img.shape[0]} pixels (width x "
-                         f"height), expected {shape[1]}x{shape[0]} (camera.size)")
-    return img, level
+def _frame(path: Path, shape: tuple[int, int], what: str) -> Frame:
+    frame = read_frame(path)
+    if frame.data.shape[:2] != tuple(shape):
+        h, w = frame.data.shape[:2]
+        binned = " (a RAW file's 2x2 Bayer quads binned)" if path.suffix.lower() in RAW_EXT else ""
+        raise ImageError(f"{path}: {what} is {w}x{h} pixels{binned} (width x height), "
+                         f"expected {shape[1]}x{shape[0]} (camera.size)")
+    return frame
+
+
+def _saturated(frame: Frame, saturation: float | None) -> np.ndarray | bool:
+    """Where the frame is saturated: its stored (RAW: raw sensor) values at or above the
+    spec's ``saturation``, else at or above ``SATURATION_FRACTION`` of the file's level."""
+    if saturation is not None:
+        return frame.peak >= saturation
+    if frame.level is None:
+        return False
+    return frame.peak >= SATURATION_FRACTION * frame.level
 
 
 def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
@@ -249,9 +351,10 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     """Read an image entry (one photo or an exposure bracket) as one linear image.
 
     Each frame k gives ``s_k = raw_k - dark_k``.  A pixel channel is saturated
-    in frame k where ``raw_k >= SATURATION_FRACTION * level``, the level being
-    ``entry.saturation`` if given, else the file type's (65535, 255; float
-    files have none).  The result is the exposure-weighted mean of
+    in frame k where its stored value (RAW: the raw sensor value of any photosite
+    binned into it, black included) is at or above ``entry.saturation`` if given,
+    else at or above ``SATURATION_FRACTION`` of the file's level (65535, 255, the
+    RAW white level; float files have none).  The result is the exposure-weighted mean of
     ``s_k / t_k`` over unsaturated frames, ``sum(s_k) / sum(t_k)``: longer
     exposures, with better SNR, count more.  Where every frame is saturated
     the value is the same sum over all frames, marked invalid.
@@ -299,9 +402,10 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     den = np.zeros(shape + (3,))
     all_num = np.zeros(shape + (3,))
     warned = False
-    dark_cache: dict[Path, tuple[np.ndarray, float | None]] = {}
+    dark_cache: dict[Path, Frame] = {}
     for k, (path, t) in enumerate(zip(paths, exps)):
-        raw, level = _frame(path, shape, "image")
+        frame = _frame(path, shape, "image")
+        raw, level = frame.data, frame.level
         if level == 255.0 and entry.response != "linear" and not warned:
             warnings.warn(f"{path}: 8-bit image without 'response: linear'; read as linear, but "
                           "8-bit files usually carry a tone curve, so the result is biased",
@@ -312,13 +416,12 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
             dpath = darks[k if len(darks) > 1 else 0]
             if dpath not in dark_cache:
                 dark_cache[dpath] = _frame(dpath, shape, "dark frame")
-            dark, dlevel = dark_cache[dpath]
+            dark, dlevel = dark_cache[dpath].data, dark_cache[dpath].level
             if dlevel != level:
                 raise ImageError(f"{dpath}: dark frame has saturation level {dlevel} (pixel "
                                  f"type) but the image {path} has {level}; they must match")
             signal = raw - dark
-        sat_level = entry.saturation if entry.saturation is not None else level
-        ok = raw < SATURATION_FRACTION * sat_level if sat_level is not None else True
+        ok = ~_saturated(frame, entry.saturation)
         num += np.where(ok, signal, 0.0)
         den += np.where(ok, t, 0.0)
         all_num += signal
