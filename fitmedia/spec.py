@@ -12,7 +12,8 @@ Optional extensions (documented in ``docs/spec.md``):
   intensity in the water, image units x mm^2).
 * ``images[].saturation`` / ``calibration.clear_water.saturation``: the raw
   file value at or above which a pixel is saturated.
-* ``images[].response: linear``: declares an 8-bit file linear.
+* ``images[].response: linear | srgb``: how an 8- or 16-bit file encodes light (required
+  for them; docs/spec.md).
 """
 
 from __future__ import annotations
@@ -84,7 +85,7 @@ IMAGE_SCHEMA = {
         "concentration": {"type": "number", "exclusiveMinimum": 0},
         "dark": _paths, "mask": {"type": "string", "minLength": 1},
         "light": {"type": "object"}, "camera": {"type": "object"},
-        "saturation": _sat, "response": {"enum": ["linear"]},
+        "saturation": _sat, "response": {"enum": ["linear", "srgb"]},
     },
 }
 
@@ -135,7 +136,7 @@ SCHEMA = {
                 "type": "object", "additionalProperties": False,
                 "required": ["path", "exposure_s"],
                 "properties": {"path": _paths, "exposure_s": _exposures, "dark": _paths,
-                               "saturation": _sat, "response": {"enum": ["linear"]}}}},
+                               "saturation": _sat, "response": {"enum": ["linear", "srgb"]}}}},
         },
         "noise": {"type": "object", "additionalProperties": False,
                   "required": ["gain", "read_var"],

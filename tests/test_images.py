@@ -36,6 +36,8 @@ def _tiff(path: Path, arr: np.ndarray) -> Path:
 
 
 def _entry(paths, exposures, **kw) -> ImageEntry:
+    """An image entry; 8- and 16-bit files declared linear unless ``response`` is given."""
+    kw.setdefault("response", "linear")
     return ImageEntry(paths=tuple(Path(p) for p in paths), exposures=tuple(exposures), **kw)
 
 
@@ -69,7 +71,7 @@ def test_uint16_png_channel_order(tmp_path):
     np.testing.assert_array_equal(back, img)
 
 
-def test_uint8_png_read_by_other_library_and_warns(tmp_path):
+def test_uint8_png_read_by_other_library(tmp_path):
     import imageio.v3 as iio
 
     img = np.zeros((H, W, 3), np.uint8) + np.array([10, 100, 200], np.uint8)
@@ -77,11 +79,56 @@ def test_uint8_png_read_by_other_library_and_warns(tmp_path):
     back, level = read_image(tmp_path / "a.png")
     assert level == 255
     np.testing.assert_array_equal(back, img)
-    with pytest.warns(UserWarning, match="biased"):
-        out = load_entry(_entry([tmp_path / "a.png"], [1.0]), expected_shape=(H, W))
+    out = load_entry(_entry([tmp_path / "a.png"], [1.0]), expected_shape=(H, W))
     np.testing.assert_array_equal(out.data, img)
-    # declared linear: no warning (warnings are errors in this suite)
-    load_entry(_entry([tmp_path / "a.png"], [1.0], response="linear"), expected_shape=(H, W))
+
+
+def _glow(rng: np.random.Generator, h: int = 60, w: int = 80) -> np.ndarray:
+    """A linear glow in a black tank, values in [0, 1]: exp(-r / 6 px) plus a little noise."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    r = np.hypot(yy - h / 2, xx - w / 2)
+    img = np.exp(-r / 6.0)[..., None] * np.array([0.9, 0.6, 0.3])
+    return np.clip(img + rng.normal(0.0, 1e-4, img.shape), 0.0, 1.0)
+
+
+def _srgb_encode(v: np.ndarray) -> np.ndarray:
+    """The sRGB encoding curve, written here independently of fitmedia's decoder."""
+    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_undeclared_integer_file_is_refused_and_srgb_named(tmp_path, rng, bits):
+    """An 8- or 16-bit file without `response` is refused naming the file and the fix;
+    the sRGB-encoded one is named as such (histogram), the linear one is not."""
+    dtype, top = (np.uint8, 255) if bits == 8 else (np.uint16, 65535)
+    lin = _glow(rng)
+    enc = _tiff(tmp_path / "enc.tif", np.round(_srgb_encode(lin) * top).astype(dtype))
+    raw = _tiff(tmp_path / "lin.tif", np.round(lin * top).astype(dtype))
+    shape = lin.shape[:2]
+    with pytest.raises(ImageError, match=rf"enc\.tif: a {bits}-bit image .*looks sRGB-encoded"
+                                         r".*'response: srgb'.*'response: linear'"):
+        load_entry(_entry([enc], [1.0], response=None), expected_shape=shape)
+    with pytest.raises(ImageError, match=r"lin\.tif: .*may carry a tone curve; declare") as exc:
+        load_entry(_entry([raw], [1.0], response=None), expected_shape=shape)
+    assert "sRGB" not in str(exc.value).split("declare")[0]
+
+
+def test_srgb_response_decodes_to_linear(tmp_path, rng):
+    """`response: srgb` on a 16-bit sRGB-encoded file gives back the linear values the file
+    was encoded from (to the 16-bit quantisation), like the linear file does."""
+    lin = _glow(rng)
+    enc = _tiff(tmp_path / "enc.tif", np.round(_srgb_encode(lin) * 65535).astype(np.uint16))
+    out = load_entry(_entry([enc], [2.0], response="srgb"), expected_shape=lin.shape[:2])
+    step = np.gradient(lin, axis=1)  # slack: one 16-bit code step of the encoded value
+    np.testing.assert_allclose(out.data, lin * 65535 / 2.0, rtol=2e-3, atol=0.5)
+    assert np.abs(step).max() > 0  # the glow is not flat
+
+
+def test_float_file_with_srgb_is_refused(tmp_path):
+    write_float_tiff(tmp_path / "f.tiff", np.ones((H, W, 3), np.float32))
+    with pytest.raises(ImageError, match=r"f\.tiff: 'response: srgb' is for 8- or 16-bit"):
+        load_entry(_entry([tmp_path / "f.tiff"], [1.0], response="srgb"), expected_shape=(H, W))
+    load_entry(_entry([tmp_path / "f.tiff"], [1.0], response=None), expected_shape=(H, W))
 
 
 def test_exr_channel_order(tmp_path):

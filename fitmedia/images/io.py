@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import os
 import struct
-import warnings
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -115,6 +114,9 @@ class Frame:
         Stored samples averaged into one pixel per channel (binned Bayer: 1, 2, 1).
     quantum : float
         Step of one stored sample in ``data`` units (1 for integer files; 0 for float).
+    encoded : bool
+        An 8- or 16-bit TIFF or PNG: its values may carry a tone curve, so it is used
+        only with a declared response (:func:`linearise`).
     """
 
     data: np.ndarray
@@ -122,6 +124,7 @@ class Frame:
     level: float | None
     samples: np.ndarray
     quantum: float
+    encoded: bool = False
 
 
 def _bin_bayer(path: Path, img: np.ndarray, colors: np.ndarray, black: np.ndarray,
@@ -243,7 +246,64 @@ def read_frame(path: str | Path) -> Frame:
                          "(3 channels, or 4 with alpha) is needed")
     level = _LEVELS.get(arr.dtype)
     rgb = arr[..., :3]
-    return Frame(rgb.astype(np.float64), rgb, level, np.ones(3), 0.0 if level is None else 1.0)
+    return Frame(rgb.astype(np.float64), rgb, level, np.ones(3), 0.0 if level is None else 1.0,
+                 encoded=level is not None)
+
+
+def srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    """The sRGB decoding curve (IEC 61966-2-1) of values in [0, 1]."""
+    v = np.asarray(v, dtype=np.float64)
+    return np.where(v <= 0.04045, v / 12.92, ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+#: :func:`looks_srgb`'s threshold: the fraction of lit values in the mid-tones (10-90 % of
+#: full scale) above which an undeclared file is called sRGB-like.  A glow exp(-r / 6 px)
+#: in a black 80x60 frame gives 0.13 linear and 0.39 sRGB-encoded (tests/test_images.py).
+SRGB_MIDTONE_FRACTION = 0.3
+
+
+def looks_srgb(frame: Frame) -> float | None:
+    """The fraction of lit values (above 1/256 of full scale) in the mid-tones, 10 % to
+    90 % of full scale, when it is over ``SRGB_MIDTONE_FRACTION`` (a tone curve lifts the
+    dim glow into the mid-tones; a linear glow falls over decades, mostly below 10 %), else
+    None.  A heuristic: it only words the refusal of an undeclared file."""
+    v = frame.data / frame.level
+    lit = v[v > 1.0 / 256]
+    if lit.size < 16:
+        return None
+    frac = float(np.mean((lit > 0.1) & (lit < 0.9)))
+    return frac if frac > SRGB_MIDTONE_FRACTION else None
+
+
+def linearise(frame: Frame, response: str | None, path: Path) -> Frame:
+    """A frame in linear units: 8- and 16-bit files through their declared ``response``.
+
+    ``linear``: as stored.  ``srgb``: through :func:`srgb_to_linear`, still scaled to the
+    file's range (0..255 or 0..65535) so that file units keep their meaning.  Undeclared:
+    refused.  Float and RAW files are linear; ``srgb`` on them is refused.
+
+    Raises
+    ------
+    ImageError
+        Naming the file and the fix (and the sRGB look of its histogram when it has it).
+    """
+    if not frame.encoded:
+        if response == "srgb":
+            raise ImageError(f"{path}: 'response: srgb' is for 8- or 16-bit TIFF/PNG files; "
+                             "float and RAW files are linear (remove it)")
+        return frame
+    if response == "linear":
+        return frame
+    if response == "srgb":
+        lin = srgb_to_linear(frame.data / frame.level) * frame.level
+        return replace(frame, data=lin, quantum=frame.quantum / 12.92, encoded=False)
+    bits = 8 if frame.level == 255.0 else 16
+    frac = looks_srgb(frame)
+    seen = "" if frac is None else (f"; it looks sRGB-encoded ({100 * frac:.0f}% of its "
+                                    "non-black values lie between 10% and 90% of full scale)")
+    raise ImageError(f"{path}: a {bits}-bit image may carry a tone curve{seen}; declare on its "
+                     "image entry 'response: srgb' (sRGB-encoded, decoded by fitmedia) or "
+                     "'response: linear' (it holds linear sensor values)")
 
 
 def read_image(path: str | Path) -> tuple[np.ndarray, float | None]:
@@ -378,14 +438,8 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     ------
     ImageError
         A bad file, a frame or dark of the wrong size, a dark of another pixel
-        type, or more than ``MAX_UNUSABLE_FRACTION`` of the pixels saturated or
+        type, an 8- or 16-bit file without ``response`` (:func:`linearise`), or more than ``MAX_UNUSABLE_FRACTION`` of the pixels saturated or
         masked in the requested channels.
-
-    Warns
-    -----
-    UserWarning
-        An 8-bit frame without ``entry.response == "linear"``: it is read as
-        linear, but 8-bit files usually carry a tone curve, so the result is biased.
     """
     chans = tuple(channels)
     if not chans or any(c not in (0, 1, 2) for c in chans):
@@ -401,21 +455,16 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     num = np.zeros(shape + (3,))
     den = np.zeros(shape + (3,))
     all_num = np.zeros(shape + (3,))
-    warned = False
     dark_cache: dict[Path, Frame] = {}
     for k, (path, t) in enumerate(zip(paths, exps)):
-        frame = _frame(path, shape, "image")
+        frame = linearise(_frame(path, shape, "image"), entry.response, path)
         raw, level = frame.data, frame.level
-        if level == 255.0 and entry.response != "linear" and not warned:
-            warnings.warn(f"{path}: 8-bit image without 'response: linear'; read as linear, but "
-                          "8-bit files usually carry a tone curve, so the result is biased",
-                          UserWarning, stacklevel=2)
-            warned = True
         signal = raw
         if darks:
             dpath = darks[k if len(darks) > 1 else 0]
             if dpath not in dark_cache:
-                dark_cache[dpath] = _frame(dpath, shape, "dark frame")
+                dark_cache[dpath] = linearise(_frame(dpath, shape, "dark frame"),
+                                              entry.response, dpath)
             dark, dlevel = dark_cache[dpath].data, dark_cache[dpath].level
             if dlevel != level:
                 raise ImageError(f"{dpath}: dark frame has saturation level {dlevel} (pixel "
