@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 import struct
 import zlib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -113,7 +113,8 @@ class Frame:
     samples : ndarray of shape (3,)
         Stored samples averaged into one pixel per channel (binned Bayer: 1, 2, 1).
     quantum : float
-        Step of one stored sample in ``data`` units (1 for integer files; 0 for float).
+        Step of one stored sample in ``data`` units: 1 for integer files; for float files
+        the type's spacing at the largest absolute value.
     encoded : bool
         An 8- or 16-bit TIFF or PNG: its values may carry a tone curve, so it is used
         only with a declared response (:func:`linearise`).
@@ -246,8 +247,11 @@ def read_frame(path: str | Path) -> Frame:
                          "(3 channels, or 4 with alpha) is needed")
     level = _LEVELS.get(arr.dtype)
     rgb = arr[..., :3]
-    return Frame(rgb.astype(np.float64), rgb, level, np.ones(3), 0.0 if level is None else 1.0,
-                 encoded=level is not None)
+    if level is None:  # float: the type's spacing at the largest value (a floor, not a step)
+        quantum = float(np.spacing(np.abs(rgb).max().astype(rgb.dtype)))
+    else:
+        quantum = 1.0
+    return Frame(rgb.astype(np.float64), rgb, level, np.ones(3), quantum, encoded=level is not None)
 
 
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:
@@ -377,6 +381,18 @@ class LoadedImage:
         Pixels where the mask is zero.
     source : str
         The file path(s), for messages.
+    exposure : ndarray of shape (H, W, 3)
+        Summed exposure (s) of the frames merged into each pixel (all frames where
+        every one is saturated).
+    reads : ndarray of shape (H, W, 3)
+        Number of reads in each pixel: frames merged plus dark frames subtracted.
+    samples : ndarray of shape (3,)
+        Stored samples averaged per pixel and channel (binned Bayer: 1, 2, 1).
+    quant_var : float
+        Variance of the quantisation of one stored sample, file units squared: step^2 / 12
+        (the float type's spacing at the largest value for float files).
+    exposures : tuple of float
+        The frames' exposure times, s.
     """
 
     data: np.ndarray
@@ -384,6 +400,35 @@ class LoadedImage:
     n_saturated: int
     n_masked: int
     source: str
+    exposure: np.ndarray | None = None
+    reads: np.ndarray | None = None
+    samples: np.ndarray = field(default_factory=lambda: np.ones(3))
+    quant_var: float = 0.0
+    exposures: tuple[float, ...] = (1.0,)
+
+    def variance_maps(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per-pixel noise model of ``data``: variance = gain_map * mean + read_map.
+
+        Parameters
+        ----------
+        a, b : array_like of shape (3,) or scalar
+            The camera's noise per stored sample of one frame, in file units (DN):
+            variance = a * signal + b, per channel R, G, B.
+
+        Returns
+        -------
+        gain_map, read_map : ndarray of shape (H, W, 3)
+            With T the pixel's summed exposure over the frames merged into it, N its
+            number of reads (frames plus subtracted darks) and n the samples binned
+            into it: gain_map = a / (n T), read_map = N max(b, quant_var) / (n T^2).
+            ``read_map`` is positive: ``b`` is floored at the quantisation variance.
+        """
+        a = np.broadcast_to(np.asarray(a, float), (3,))
+        b = np.maximum(np.broadcast_to(np.asarray(b, float), (3,)), self.quant_var)
+        t = self.exposure if self.exposure is not None else np.full(self.data.shape,
+                                                                    self.exposures[0])
+        n = self.reads if self.reads is not None else np.ones(self.data.shape)
+        return a / (self.samples * t), n * b / (self.samples * t * t)
 
 
 def _frame(path: Path, shape: tuple[int, int], what: str) -> Frame:
@@ -452,30 +497,10 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     if len(darks) not in (0, 1, len(paths)):
         raise InputError(f"{source}: dark: {len(darks)} dark frames for {len(paths)} paths")
     shape = (int(expected_shape[0]), int(expected_shape[1]))
-    num = np.zeros(shape + (3,))
-    den = np.zeros(shape + (3,))
-    all_num = np.zeros(shape + (3,))
-    dark_cache: dict[Path, Frame] = {}
-    for k, (path, t) in enumerate(zip(paths, exps)):
-        frame = linearise(_frame(path, shape, "image"), entry.response, path)
-        raw, level = frame.data, frame.level
-        signal = raw
-        if darks:
-            dpath = darks[k if len(darks) > 1 else 0]
-            if dpath not in dark_cache:
-                dark_cache[dpath] = linearise(_frame(dpath, shape, "dark frame"),
-                                              entry.response, dpath)
-            dark, dlevel = dark_cache[dpath].data, dark_cache[dpath].level
-            if dlevel != level:
-                raise ImageError(f"{dpath}: dark frame has saturation level {dlevel} (pixel "
-                                 f"type) but the image {path} has {level}; they must match")
-            signal = raw - dark
-        ok = ~_saturated(frame, entry.saturation)
-        num += np.where(ok, signal, 0.0)
-        den += np.where(ok, t, 0.0)
-        all_num += signal
-    usable = den > 0
-    data = np.where(usable, num / np.where(usable, den, 1.0), all_num / sum(exps))
+    data, exposure, reads, samples, quant_var = _merge(entry, shape)
+    usable = exposure > 0
+    exposure = np.where(usable, exposure, sum(exps))
+    reads = np.where(usable, reads, len(paths) * (1 + bool(darks)))
     mask_ok = np.ones(shape, bool) if entry.mask is None else _read_mask(entry.mask, shape)
     valid = usable & mask_ok[..., None]
     saturated = ~usable[..., chans].all(axis=2)
@@ -489,4 +514,42 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
         raise ImageError(f"{source}: {what}; at most {100 * MAX_UNUSABLE_FRACTION:.0f}% may be "
                          "unusable (use a shorter exposure or an exposure bracket)")
     return LoadedImage(data=data, valid=valid, n_saturated=n_sat, n_masked=n_masked,
-                       source=source)
+                       source=source, exposure=exposure, reads=reads, samples=samples,
+                       quant_var=quant_var, exposures=tuple(exps))
+
+
+def _merge(entry: ImageEntry, shape: tuple[int, int]
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """The frames of ``entry`` merged: ``sum(s_k) / sum(t_k)`` over unsaturated frames
+    (all frames where none is), the unsaturated exposure sum (0 where none), the reads
+    (frames + darks) merged, the samples per pixel and the largest quantisation variance."""
+    paths, exps, darks = list(entry.paths), list(entry.exposures), list(entry.darks)
+    num, den, nread, all_num = (np.zeros(shape + (3,)) for _ in range(4))
+    dark_cache: dict[Path, Frame] = {}
+    samples, qvar = None, 0.0
+    for k, (path, t) in enumerate(zip(paths, exps)):
+        frame = linearise(_frame(path, shape, "image"), entry.response, path)
+        signal, n = frame.data, 1
+        if darks:
+            dpath = darks[k if len(darks) > 1 else 0]
+            if dpath not in dark_cache:
+                dark_cache[dpath] = linearise(_frame(dpath, shape, "dark frame"),
+                                              entry.response, dpath)
+            dark = dark_cache[dpath]
+            if dark.level != frame.level or not np.array_equal(dark.samples, frame.samples):
+                raise ImageError(f"{dpath}: dark frame has saturation level {dark.level} (pixel "
+                                 f"type) but the image {path} has {frame.level}; they must "
+                                 "be of the same type")
+            signal, n = frame.data - dark.data, 2
+            qvar = max(qvar, dark.quantum ** 2 / 12.0)
+        if samples is not None and not np.array_equal(samples, frame.samples):
+            raise ImageError(f"{path}: frames of one bracket must be of the same file type")
+        samples, qvar = frame.samples, max(qvar, frame.quantum ** 2 / 12.0)
+        ok = ~_saturated(frame, entry.saturation)
+        num += np.where(ok, signal, 0.0)
+        den += np.where(ok, t, 0.0)
+        nread += np.where(ok, n, 0)
+        all_num += signal
+    usable = den > 0
+    data = np.where(usable, num / np.where(usable, den, 1.0), all_num / sum(exps))
+    return data, den, nread, samples, qvar

@@ -2,7 +2,11 @@
 nlopt optimizer and the emcee sampler call.
 
 Noise model (CAPTURE_SPEC.md): variance = gain * mean + read_var, in the units
-of the exposure-normalised images, evaluated at the model's mean.  Saturated,
+of the exposure-normalised images, evaluated at the model's mean; per pixel where the
+images give it (brackets, subtracted darks, binned RAW: ``LoadedImage.variance_maps``).
+The read variance is floored at the data's quantisation variance (step^2 / 12; for float
+data the type's spacing at the largest value), so that a read variance of 0 never makes
+a zero-valued pixel's weight infinite (docs/spec.md, "Noise").  Saturated,
 masked and out-of-tank pixels are excluded; the count of excluded pixels is
 reported.  Optionally a Student-t likelihood (nu = 4) for outliers.
 """
@@ -27,18 +31,31 @@ class Observation:
     data : (H, W) exposure-normalised image
     valid : (H, W) bool, pixels used
     concentration : the image's concentration (the medium's values scale with it)
+    gain, read_var : (H, W) per-pixel noise model, optional (else the problem's own)
     """
 
     model: ForwardModel
     data: np.ndarray
     valid: np.ndarray
     concentration: float
+    gain: np.ndarray | None = None
+    read_var: np.ndarray | None = None
 
     def __post_init__(self):
         self.flat_idx = np.flatnonzero(self.valid.ravel())
         self.values = self.data.ravel()[self.flat_idx]
         if not np.all(np.isfinite(self.values)):
             raise ValueError("non-finite data in valid pixels")  # images.io masks these
+        pick = (lambda a: None if a is None else
+                np.broadcast_to(np.asarray(a, float), self.data.shape).ravel()[self.flat_idx])
+        self.gain_v, self.read_v = pick(self.gain), pick(self.read_var)
+
+
+def quantisation_var(values: np.ndarray) -> float:
+    """The read-variance floor of data with no known step: the float64 spacing at the
+    largest absolute value, squared, over 12 (positive even for all-zero data)."""
+    top = float(np.max(np.abs(values))) if np.size(values) else 0.0
+    return max(float(np.spacing(top)) ** 2 / 12.0, np.finfo(float).tiny)
 
 
 class ChannelProblem:
@@ -51,6 +68,7 @@ class ChannelProblem:
     brightness : float or None
         The light's calibrated brightness; None when it is a free parameter.
     noise : (gain, read_var)
+        Used for observations without per-pixel maps; read_var floored (module docstring).
     robust : bool
         Student-t (nu = 4) instead of Gaussian residuals.
     water_kappa_a : float
@@ -69,6 +87,16 @@ class ChannelProblem:
         self.robust = robust
         self.water_kappa_a = float(water_kappa_a)  # clear water's own absorption, 1/mm (fixed)
         self.n_pixels = int(sum(len(o.values) for o in observations))
+        self._noise = []  # per observation: (gain, read variance) per used pixel, floored
+        for o in observations:
+            g = o.gain_v if o.gain_v is not None else np.full(len(o.values), float(self.gain))
+            r = o.read_v if o.read_v is not None else np.full(len(o.values), float(self.read_var))
+            self._noise.append((g, np.maximum(r, quantisation_var(o.values))))
+
+    def variance(self, k: int, m: np.ndarray) -> np.ndarray:
+        """Noise variance of observation ``k``'s used pixels at model values ``m``."""
+        g, r = self._noise[k]
+        return g * np.maximum(m, 0.0) + r
 
     def adapt(self, u: np.ndarray) -> None:
         """Tune the forward models' quadrature to the parameters ``u`` (and keep it fixed).
@@ -91,9 +119,9 @@ class ChannelProblem:
 
     def log_likelihood(self, u: np.ndarray) -> float:
         total = 0.0
-        for o, img in zip(self.obs, self.render(u)):
+        for k, (o, img) in enumerate(zip(self.obs, self.render(u))):
             m = img.ravel()[o.flat_idx]
-            var = self.gain * np.maximum(m, 0.0) + self.read_var
+            var = self.variance(k, m)
             r2 = (o.values - m) ** 2 / var
             if self.robust:
                 total += float(np.sum(-0.5 * (STUDENT_NU + 1) * np.log1p(r2 / STUDENT_NU)
@@ -116,10 +144,9 @@ class ChannelProblem:
     def chi2_images(self, u: np.ndarray) -> list[tuple[float, int]]:
         """Per image: sum of squared standardised residuals and the number of pixels."""
         out = []
-        for o, img in zip(self.obs, self.render(u)):
+        for k, (o, img) in enumerate(zip(self.obs, self.render(u))):
             m = img.ravel()[o.flat_idx]
-            out.append((float(np.sum((o.values - m) ** 2 /
-                                     (self.gain * np.maximum(m, 0) + self.read_var))), len(m)))
+            out.append((float(np.sum((o.values - m) ** 2 / self.variance(k, m))), len(m)))
         return out
 
     def chi2(self, u: np.ndarray) -> tuple[float, int]:
