@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..images import LoadedImage, estimate_noise, load_entry
+from ..images import LoadedImage, checks, estimate_noise, load_entry
 from ..spec import CHANNELS, Spec
 from .likelihood import ChannelProblem, Observation
 from .optimize import find_map
@@ -117,12 +117,19 @@ def prepare(spec: Spec) -> Prepared:
     ch_idx = tuple(CHANNELS.index(c) for c in spec.channels)
     notes: list[str] = []
     images = []
-    for i, entry in enumerate(spec.images):
-        cam = spec.camera_for(i)
-        images.append(load_entry(entry, expected_shape=(cam.height, cam.width), channels=ch_idx))
-    clear = None
-    if spec.clear_water is not None:
-        clear = load_entry(spec.clear_water, expected_shape=shape, channels=ch_idx)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # checked just below
+        for i, entry in enumerate(spec.images):
+            cam = spec.camera_for(i)
+            images.append(load_entry(entry, expected_shape=(cam.height, cam.width),
+                                     channels=ch_idx))
+        clear = None
+        if spec.clear_water is not None:
+            clear = load_entry(spec.clear_water, expected_shape=shape, channels=ch_idx)
+    named = [(f"images[{i}]", e.paths, im) for i, (e, im) in enumerate(zip(spec.images, images))]
+    named += [("calibration.clear_water", spec.clear_water.paths, clear)] if clear else []
+    for _, _, im in named:
+        checks.check_values(im, ch_idx, spec.channels)
+    checks.check_distinct(named)
     if spec.noise is not None:
         noise = {c: spec.noise for c in spec.channels}
         noise_source = "spec"
@@ -133,6 +140,9 @@ def prepare(spec: Spec) -> Prepared:
                                       rng=0)
         noise_source = "estimated from the first image"
         notes.append("noise model estimated from the data (no `noise` in the spec)")
+    for _, _, im in named:
+        checks.check_negative(im, ch_idx, spec.channels, [noise[c][1] for c in spec.channels],
+                              float(spec.priors.get("background_sd", 0.0)))
     brightness: dict[str, float | None]
     light = spec.light
     rel_sd: dict[str, float | None] = {c: None for c in spec.channels}

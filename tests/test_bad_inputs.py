@@ -1,0 +1,69 @@
+"""Bad input never gives a wrong number, a traceback or a hang (issue 17): the image sanity
+checks against the noise model, and the bad-input corpus (tests/bad_inputs/make_corpus.py)
+run through the real entry point."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fitmedia.errors import ImageError
+from fitmedia.images import LoadedImage, checks
+from conftest import ROOT
+
+READ_VAR = 1e-9  # the synthetic camera's (fitmedia.synth.DEFAULT_READ_VAR), sd 3.2e-5
+
+
+def _image(data: np.ndarray) -> LoadedImage:
+    return LoadedImage(data=data, valid=np.ones(data.shape, bool), n_saturated=0, n_masked=0,
+                       source="x.tiff")
+
+
+def _dilute(rng, shape=(90, 120)) -> np.ndarray:
+    """Read noise everywhere (half the pixels negative) and a faint glow on 2 % of the pixels,
+    the shape of a thin dilution's photo."""
+    data = rng.normal(0.0, np.sqrt(READ_VAR), shape + (3,))
+    data[:9, :24] += 0.01
+    return data
+
+
+def test_a_dilute_capture_passes_and_its_negation_does_not(rng):
+    """Second model: pure normal read noise puts 2.9e-7 of its pixels below -5 sd, so a
+    dilute photo (half its pixels negative) passes; the same photo negated (its glow far
+    below 0, nothing far above) and one with a whole-image offset of -6 sd are refused, the
+    latter accepted when the spec's background prior covers it."""
+    data = _dilute(rng)
+    checks.check_values(_image(data), (0, 1, 2), "RGB")
+    checks.check_negative(_image(data), (0, 1, 2), "RGB", [READ_VAR] * 3)
+    for bad in (-np.abs(data), data - 6 * np.sqrt(READ_VAR)):
+        with pytest.raises(ImageError, match="x.tiff: channel R: .* below"):
+            checks.check_negative(_image(bad), (0, 1, 2), "RGB", [READ_VAR] * 3)
+    checks.check_negative(_image(data - 6 * np.sqrt(READ_VAR)), (0, 1, 2), "RGB", [READ_VAR] * 3,
+                          background_sd=3 * np.sqrt(READ_VAR))
+
+
+@pytest.mark.parametrize("scale, words", [
+    (0.0, "0 at every usable pixel"),
+    (1e304, "e+302 per second after dividing by exposure_s"),  # exposure_s 1e-300 s, ~0.01
+    (1e-303, "e-305 per second after dividing by exposure_s"),  # exposure_s 1e300 s
+    (np.inf, "non-finite"),
+])
+def test_values_outside_what_a_photo_holds_are_refused(rng, scale, words):
+    """All-zero, overflowing, underflowing and infinite images are refused naming the file
+    and the channel (limits: VALUE_RANGE, by hand from the float64 range)."""
+    with np.errstate(all="ignore"):
+        data = _dilute(rng) * scale
+    data[0, 0] = 0.01 * scale if np.isfinite(scale) else np.inf
+    with pytest.raises(ImageError, match="x.tiff: channel R") as exc:
+        checks.check_values(_image(np.abs(data) if scale == 0 else data), (0, 1, 2), "RGB")
+    assert words in str(exc.value)
+
+
+def test_the_bundled_captures_pass_the_checks():
+    """The captures fitmedia ships (synthetic/default: the demo) are prepared without a
+    refusal: the checks never refuse a legitimate capture."""
+    from fitmedia.inference.fit import prepare
+    from fitmedia.spec import load_spec
+
+    prep = prepare(load_spec(ROOT / "synthetic" / "default" / "capture.yaml"))
+    assert len(prep.images) >= 1 and prep.clear is not None
