@@ -1,10 +1,15 @@
-"""Small helpers shared across the package: atomic writes, seeds, JSON."""
+"""Small helpers shared across the package: atomic writes, output folders, seeds, JSON."""
 
 from __future__ import annotations
 
+import glob
 import json
 import os
+import shutil
+import socket
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable
 
@@ -70,3 +75,97 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
             np.savez_compressed(fh, **arrays)
 
     atomic_write(path, write)
+
+
+#: Infix of the temporary sibling folder a run writes into (:func:`staged_output_dir`)
+PARTIAL = ".partial-"
+
+
+def _existing_ancestor(path: Path) -> Path:
+    """``path`` or its nearest ancestor that exists."""
+    p = path
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_output_dir(path: str | Path, flag: str = "--out") -> Path:
+    """The output folder ``path`` as an absolute Path, once it is known that a run can write
+    it; else an :class:`~fitmedia.errors.InputError` naming ``flag`` (exit code 2), before any
+    work.  Refused: an empty path, an existing file, a path under a file, a folder this
+    process cannot create files in (tried, not guessed from permission bits: root may write
+    a read-only folder).  Creates nothing; a missing folder is created when the run writes."""
+    from .errors import InputError
+
+    text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else None
+    if not text or not text.strip():
+        raise InputError(f"{flag}: empty path; name the folder to write into")
+    target = Path(os.path.abspath(Path(text).expanduser()))
+    if target.exists() and not target.is_dir():
+        raise InputError(f"{flag}: {text} is an existing file, not a folder")
+    base = _existing_ancestor(target)
+    if not base.is_dir():
+        raise InputError(f"{flag}: {text}: {base} is a file, not a folder")
+    try:
+        os.rmdir(tempfile.mkdtemp(dir=base, prefix=".fitmedia-write-test-"))
+    except OSError as exc:
+        raise InputError(f"{flag}: {text}: cannot write in {base} "
+                         f"({exc.strerror or type(exc).__name__})") from None
+    return target
+
+
+def _remove_stale_partials(parent: Path, name: str) -> None:
+    """Remove temporary folders of ``name`` left by runs of this host that were killed."""
+    host = socket.gethostname()
+    for p in parent.glob(glob.escape(f".{name}{PARTIAL}{host}-") + "*"):
+        try:
+            pid = int(p.name.removeprefix(f".{name}{PARTIAL}{host}-").split("-")[0])
+            os.kill(pid, 0)
+        except (ValueError, ProcessLookupError):
+            shutil.rmtree(p, ignore_errors=True)
+        except PermissionError:  # alive, another user's
+            pass
+
+
+def _move_into(src: Path, dst: Path) -> None:
+    """Move the folder ``src`` to ``dst``: one rename when ``dst`` does not exist, else each
+    file renamed over its namesake (sub-folders merged), other files in ``dst`` kept."""
+    if not dst.exists():
+        os.rename(src, dst)
+        return
+    for entry in src.iterdir():
+        there = dst / entry.name
+        if entry.is_dir() and there.is_dir() and not there.is_symlink():
+            _move_into(entry, there)
+        else:
+            os.replace(entry, there)
+    src.rmdir()
+
+
+@contextmanager
+def staged_output_dir(path: str | Path, flag: str = "--out") -> Iterator[Path]:
+    """Write a run's outputs atomically: yields a new temporary folder beside ``path``
+    (``.<name>.partial-<host>-<pid>-*``) to write into; on success its contents are moved
+    into ``path`` (created with its parents if missing; one rename when it did not exist,
+    else file by file, each file replaced whole, files of other names kept); on an
+    exception the temporary folder is removed and ``path`` is left as it was.
+
+    ``path`` is checked first with :func:`check_output_dir`.  A run killed with SIGKILL leaves
+    only its hidden temporary folder, which the next run into ``path`` on this host removes.
+    Checkpoints that ``--resume`` must find are not written here but into ``path`` itself
+    (docs/inference.md, "Faults and resume")."""
+    target = check_output_dir(path, flag)
+    base = target.parent if target.parent.exists() else _existing_ancestor(target)
+    _remove_stale_partials(base, target.name)
+    stage = Path(tempfile.mkdtemp(dir=base, prefix=f".{target.name}{PARTIAL}"
+                                  f"{socket.gethostname()}-{os.getpid()}-"))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(stage, 0o777 & ~umask)  # mkdtemp makes 0700; it becomes the output folder
+    try:
+        yield stage
+        target.parent.mkdir(parents=True, exist_ok=True)
+        _move_into(stage, target)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
