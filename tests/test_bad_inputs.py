@@ -67,3 +67,26 @@ def test_the_bundled_captures_pass_the_checks():
 
     prep = prepare(load_spec(ROOT / "synthetic" / "default" / "capture.yaml"))
     assert len(prep.images) >= 1 and prep.clear is not None
+
+
+@pytest.mark.parametrize("camera, words", [
+    ({"position": [600, 0, 300], "look_at": [600, 0, 0]}, "crosses the front wall's plane at x = 301"),
+    ({"look_at": [900, 0, 0]}, "projects outside the image"),
+])
+def test_an_unseen_bulb_is_named_for_what_it_is(camera, words):
+    """A camera that cannot see the bulb is told why, not 'saturated, take a shorter exposure'.
+    By hand: from (600, 0, 300) the line to the bulb (40, 10, 30) crosses the wall's outer plane
+    z = 156 at x = 600 - 560 * 144 / 270 = 301 mm, outside |x| < 150; a camera turned 56 degrees
+    away puts the bulb off a 80 x 60 image.  The model agrees that no pixel sees it."""
+    from fitmedia.forward.single import SingleScattering
+    from fitmedia.inference.fit import why_bulb_unseen
+    from fitmedia.spec import parse_spec
+    from conftest import geometry_dict
+
+    d = geometry_dict()
+    d["camera"].update(camera)
+    spec = parse_spec(d, require_images=False)
+    assert words in why_bulb_unseen(spec)
+    unit = SingleScattering(spec, None, channels=("R",)).render(
+        np.zeros(1), np.zeros(1), np.zeros(1), np.ones(1))
+    assert not unit.max() > 0

@@ -77,6 +77,28 @@ def _model(spec: Spec, image_index: int | None, channel: str, options: FitOption
     return SingleScattering(spec, image_index, channels=(channel,))
 
 
+def why_bulb_unseen(spec: Spec) -> str:
+    """Why no pixel of the camera sees the bulb, judged on the straight line from the camera
+    to the bulb's centre (refraction at the wall ignored: the words, not a measurement)."""
+    cam, half = spec.camera, spec.tank.half
+    d = spec.light.position - cam.position
+    z_wall = half[2] + spec.tank.wall_thickness
+    at = cam.position + d * (cam.position[2] - z_wall) / (cam.position[2] - spec.light.position[2])
+    if np.any(np.abs(at[:2]) > half[:2]):
+        return (f"the line of sight to it crosses the front wall's plane at x = {at[0]:.0f}, "
+                f"y = {at[1]:.0f} mm, outside the wall's opening |x| < {half[0]:g}, "
+                f"|y| < {half[1]:g} mm (it is behind a side wall as seen from the camera)")
+    f, r, u = cam.frame()
+    depth = float(d @ f)
+    if not depth > 0:
+        return "it is behind the camera (camera.look_at points away from it)"
+    px, py = cam.cx + cam.fx * float(d @ r) / depth, cam.cy - cam.fy * float(d @ u) / depth
+    if not (0 <= px <= cam.width and 0 <= py <= cam.height):
+        return (f"it projects outside the image, near pixel ({px:.0f}, {py:.0f}) of a "
+                f"{cam.width} x {cam.height} image (check camera.look_at, fx, fy, cx, cy)")
+    return "the model images no pixel of it (check camera and light in the spec)"
+
+
 def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, float]]
               ) -> tuple[dict[str, float], dict[str, float]]:
     """The bulb's radiance per channel from the clear-water photo (weighted least squares
@@ -94,7 +116,10 @@ def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, floa
     for k, ch in enumerate(spec.channels):
         ci = CHANNELS.index(ch)
         m0 = unit[..., k]
-        use = (m0 > 0.05 * m0.max()) & clear.valid[..., ci] if m0.max() > 0 else m0 > 0
+        if not m0.max() > 0:  # no pixel sees the bulb: not an exposure problem
+            raise InputError(f"calibration.clear_water: {src}: the camera cannot see the bulb: "
+                             f"{why_bulb_unseen(spec)}; no calibration is possible")
+        use = (m0 > 0.05 * m0.max()) & clear.valid[..., ci]
         core = m0 > 0.9 * m0.max()  # pixels fully covered by the bulb
         if not np.any(use) or np.mean(clear.valid[..., ci][core]) < 0.5:
             raise InputError(f"calibration.clear_water: {src}: the bulb's pixels are saturated or "
@@ -185,8 +210,10 @@ def _kt_guess(spec: Spec, obs: list[Observation], brightness: float | None) -> f
 def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np.ndarray],
                 brightness: float | None, brightness_rel_sd: float | None,
                 noise: tuple[float, float], options: FitOptions,
-                checkpoint: Path | None = None, seed: int = 0) -> dict:
-    """MAP and (optionally) posterior samples of one channel; returns plain arrays/dicts."""
+                checkpoint: Path | None = None, seed: int = 0, identity: dict | None = None
+                ) -> dict:
+    """MAP and (optionally) posterior samples of one channel; returns plain arrays/dicts.
+    ``identity`` (:mod:`fitmedia.inference.identity`) goes into the chains' checkpoints."""
     obs = []
     for i, (d, v) in enumerate(zip(data, valid)):
         model = _model(spec, i, channel, options)
@@ -278,7 +305,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
                           checkpoint=checkpoint, resume=options.resume,
                           n_walkers=options.n_walkers, n_tau=options.n_tau,
                           max_steps=options.max_steps, progress=options.progress, label=channel,
-                          redraw=albedo_redraw(space, res.x, res.cov))
+                          redraw=albedo_redraw(space, res.x, res.cov), identity=identity)
         out.update(samples=chain.samples, log_prob=chain.log_prob_samples, n_steps=chain.n_steps,
                    tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
                    reason=chain.reason, burn=chain.burn, thin=chain.thin, chain=chain.chain,
@@ -286,7 +313,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
         if two:
             out.update(_sample_other_mode(problem, space, res, alt, chain, log_post, options,
                                           checkpoint, [seed, CHANNELS.index(channel)], channel,
-                                          other_mode))
+                                          other_mode, identity))
     return out
 
 
@@ -331,7 +358,8 @@ def _min_ess(chain) -> float | None:
 
 def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt, chain,
                        log_post, options: FitOptions, checkpoint: Path | None,
-                       seed: list[int], channel: str, other_mode: dict) -> dict:
+                       seed: list[int], channel: str, other_mode: dict,
+                       identity: dict | None = None) -> dict:
     """Sample the other sign's mode of g with a chain of its own (quadrature nodes adapted to
     it), measure both modes' posterior masses by bridge sampling, and mix the two chains'
     samples by those masses.  Returns the fields of ``fit_channel``'s result that change.
@@ -351,7 +379,7 @@ def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt,
                        checkpoint=ckpt, resume=options.resume, n_walkers=options.n_walkers,
                        n_tau=options.n_tau, max_steps=options.max_steps,
                        progress=options.progress, label=f"{channel} mode 2",
-                       redraw=albedo_redraw(space, polished.x, polished.cov))
+                       redraw=albedo_redraw(space, polished.x, polished.cov), identity=identity)
     mass.append(mode_log_mass(log_alt, chain2.samples, chain2.log_prob_samples, space.lower,
                               space.upper, rng, n_eff=_min_ess(chain2)))
     problem.adapt(res.x)
@@ -389,26 +417,48 @@ def _job(args):
     return fit_channel(*args)
 
 
-def channel_args(prep: Prepared, ch: str, options: FitOptions, checkpoint_dir: Path | None
-                 ) -> tuple:
+def channel_args(prep: Prepared, ch: str, options: FitOptions, checkpoint_dir: Path | None,
+                 identity: dict | None = None) -> tuple:
     """``fit_channel``'s arguments for channel ``ch`` of a prepared capture."""
     ci = CHANNELS.index(ch)
     ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"checkpoint_{ch}.npz"
     return (prep.spec, ch, [im.data[..., ci] for im in prep.images],
             [im.valid[..., ci] for im in prep.images], prep.brightness[ch],
-            prep.brightness_rel_sd.get(ch), prep.noise[ch], options, ckpt, options.seed)
+            prep.brightness_rel_sd.get(ch), prep.noise[ch], options, ckpt, options.seed, identity)
 
 
-def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | None
-                 ) -> dict[str, dict]:
-    """Fit every channel (in parallel processes when there are cores); one chain file each."""
-    jobs = [channel_args(prep, ch, options, checkpoint_dir) for ch in prep.spec.channels]
+def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | None,
+                 identity: dict | None = None) -> dict[str, dict]:
+    """Fit every channel (in parallel processes when there are cores); one chain file each.
+    The worker processes die with this process (:func:`die_with_parent`), even by SIGKILL."""
+    jobs = [channel_args(prep, ch, options, checkpoint_dir, identity) for ch in prep.spec.channels]
     workers = options.workers or min(len(jobs), os.cpu_count() or 1)
     if workers <= 1 or len(jobs) == 1:
         return {j[1]: fit_channel(*j) for j in jobs}
-    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork")) as pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork"),
+                             initializer=die_with_parent, initargs=(os.getpid(),)) as pool:
         results = list(pool.map(_job, jobs))
     return {r["channel"]: r for r in results}
+
+
+#: prctl(2) option: the signal this process gets when the thread that forked it ends
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Worker-process initializer: be killed (SIGKILL) when the parent ends, however it ends,
+    so that a `kill -9` of the main process leaves no worker writing checkpoints that a later
+    ``--resume`` would race.  Linux only (prctl PR_SET_PDEATHSIG; elsewhere a no-op).  A parent
+    that died between the fork and the prctl is caught by its pid: the worker then exits."""
+    import ctypes
+    import signal
+    import sys
+
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    if os.getppid() != parent_pid:
+        os._exit(1)
 
 
 def prior_g_interval_width(space: ParameterSpace | None = None) -> float:
