@@ -14,7 +14,7 @@ from .errors import InputError
 from .images import write_float_tiff
 from .medium import Medium
 from .spec import CHANNELS, Spec, dump_spec
-from .util import make_rng, write_json
+from .util import make_rng, staged_output_dir, write_json
 
 DEFAULT_BRIGHTNESS = 1.0      # bulb radiance in the water, image units
 DEFAULT_SPOT_INTENSITY = 2.0e4  # spot radiant intensity, image units x mm^2
@@ -69,8 +69,24 @@ def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float],
     for v in ml:
         if not (v > 0 and np.isfinite(v)):
             raise InputError(f"--ml: got {v}: must be a positive volume in ml")
-    out = Path(out_dir)
+    from .memory import check_memory
+
+    check_memory(spec, "synth")
     rng = make_rng(seed)
+    with staged_output_dir(out_dir) as out:  # checked before any work; moved into place at the end
+        raw, truth = _write_capture(spec, out, medium, ml, tank_ml=tank_ml, seed=seed, model=model,
+                                    spp=spp, brightness=brightness, noise=noise, rng=rng,
+                                    medium_name=medium_name)
+        dump_spec(raw, out / "capture.yaml")
+        write_json(out / "truth.json", truth)
+    return Path(out_dir) / "capture.yaml"
+
+
+def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, tank_ml: float,
+                   seed: int, model: str, spp: int, brightness, noise: CameraNoise,
+                   rng: np.random.Generator, medium_name: str) -> tuple[dict, dict]:
+    """Render and write the images of :func:`synthesize` into ``out``; returns the capture
+    spec's data and truth.json's."""
     light = spec.light
     if brightness is None:
         brightness = DEFAULT_BRIGHTNESS if light.type == "bulb" else DEFAULT_SPOT_INTENSITY
@@ -106,9 +122,7 @@ def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float],
     raw["calibration"] = {"clear_water": {"path": "images/clear_water.tiff", "exposure_s": 1.0,
                                           "saturation": SATURATION}}
     raw["noise"] = {"gain": noise.gain, "read_var": noise.read_var}
-    spec_path = out / "capture.yaml"
-    dump_spec(raw, spec_path)
-    write_json(out / "truth.json", {
+    return raw, {
         "medium": medium_name, "model": model, "seed": seed,
         "undiluted": medium.as_dict(), "images": truth_imgs,
         "brightness": dict(zip(CHANNELS, bright.tolist())),
@@ -117,5 +131,4 @@ def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float],
         "water_kappa_a": dict(zip(CHANNELS, water.tolist())),
         "noise": {"gain": noise.gain, "read_var": noise.read_var}, "notes": sat_note,
         "units": {"length": "mm", "kappa": "1/mm"},
-    })
-    return spec_path
+    }

@@ -110,3 +110,132 @@ def test_kill_during_either_mode_and_resume(tmp_path, watched):
     modes = [json.loads((tmp_path / d / "results.json").read_text())["diagnostics"]["channels"]
              ["R"]["g_modes"] for d in ("killed", "whole")]
     assert [m["weight"] for m in modes[0]] == [m["weight"] for m in modes[1]]
+
+
+# ---------------------------------------------------------------------------------------------
+# what --resume refuses, before any fitting (issue 17)
+
+
+@pytest.fixture(scope="module")
+def two_captures(tmp_path_factory):
+    """Espresso and Lowfat Milk, 16 ml, at 24 x 18 pixels (the issue's A and B)."""
+    from fitmedia.medium import medium_by_name
+    from fitmedia.synth import synthesize
+    from conftest import make_spec
+
+    d = tmp_path_factory.mktemp("ab")
+    geo = make_spec(width=24, height=18)
+    return (synthesize(geo, d / "A", medium_by_name("Espresso"), [16], seed=2),
+            synthesize(geo, d / "B", medium_by_name("Lowfat Milk"), [16], seed=3))
+
+
+def _identity(spec_path, **options):
+    """The run identity `fitmedia fit SPEC --seed 4` computes (built from its parts here)."""
+    from fitmedia.inference.fit import FitOptions, prepare
+    from fitmedia.inference.identity import run_identity
+    from fitmedia.spec import load_spec
+
+    prep = prepare(load_spec(spec_path))
+    return run_identity(prep.spec, prep.images, prep.clear, FitOptions(seed=4, **options))
+
+
+def _write_checkpoint(path, identity, n_steps=3, n_walkers=16, ndim=4):
+    """A checkpoint of a short chain, as the sampler writes it, stamped with ``identity``."""
+    import json
+
+    import emcee
+
+    from fitmedia.inference.sample import save_checkpoint
+
+    backend = emcee.backends.Backend()
+    backend.reset(n_walkers, ndim)
+    backend.grow(n_steps, None)
+    backend.chain[:] = np.random.default_rng(0).normal(size=backend.chain.shape)
+    backend.log_prob[:] = -1.0
+    backend.iteration = n_steps
+    backend.random_state = np.random.RandomState(0).get_state()
+    save_checkpoint(path, backend, json.dumps(identity))
+
+
+def _resume(spec, out, capsys, monkeypatch, *extra):
+    """`fitmedia fit SPEC --out OUT --resume` in this process, with the fitting itself replaced
+    by a failure: a refusal must come before it.  Returns (exit code, stderr)."""
+    from fitmedia.cli import main
+
+    def no_fitting(*args, **kw):
+        raise AssertionError("fitting started before the checkpoints were checked")
+    monkeypatch.setattr("fitmedia.pipeline.run_channels", no_fitting)
+    code = main(["fit", str(spec), "--out", str(out), "--seed", "4", "--quiet", "--no-report",
+                 "--resume", *extra])
+    return code, capsys.readouterr().err
+
+
+def _one_line(err, *words):
+    lines = [ln for ln in err.strip().splitlines() if ln]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+def _snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_resume_refuses_the_checkpoint_of_another_capture(two_captures, tmp_path, capsys,
+                                                          monkeypatch):
+    """The issue's case: Espresso's checkpoint in --out, Lowfat Milk resumed into it.  Refused
+    with exit 2 before any fitting, naming the file and what differs (the images; the two
+    specs are equal, as synthesized here: known by construction), the folder left as it was.  The same capture with another option
+    or seed names those; a checkpoint of the same run is accepted (the check passes and the
+    fitting is reached)."""
+    a, b = two_captures
+    out = tmp_path / "F"
+    out.mkdir()
+    _write_checkpoint(out / "checkpoint_R.npz", _identity(a))
+    before = _snapshot(out)
+    code, err = _resume(b, out, capsys, monkeypatch)
+    assert code == 2
+    _one_line(err, "checkpoint_R.npz", "another run", "image 0", "clear-water image")
+    assert "spec" not in err.split("checkpoint_R.npz")[1]
+    assert _snapshot(out) == before
+    code, err = _resume(a, out, capsys, monkeypatch, "--robust", "--seed", "5")
+    assert code == 2
+    _one_line(err, "option robust (False, now True)", "option seed (4, now 5)")
+    assert "image" not in err and "spec" not in err.split("checkpoint_R.npz")[1]
+    with pytest.raises(AssertionError, match="fitting started"):
+        _resume(a, out, capsys, monkeypatch, "--max-steps", "7", "--workers", "2")
+
+
+def _truncated(path):
+    _write_checkpoint(path, None)
+    path.write_bytes(path.read_bytes()[:200])
+
+
+def _wrong_shape(path):
+    np.savez(path, **{k: np.zeros(3) for k in ("chain", "log_prob", "accepted", "iteration",
+                                                 "rs_name", "rs_keys", "rs_pos",
+                                                 "rs_has_gauss", "rs_gauss")})
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda p: p.write_bytes(b""), "empty file"),
+    (_truncated, "not a usable checkpoint"),
+    (_wrong_shape, "chain of shape (3,)"),
+    (lambda p: p.write_text("not a checkpoint\n"), "not a usable checkpoint"),
+    (lambda p: _write_checkpoint(p, None), "no run identity recorded"),
+], ids=["empty", "truncated", "wrong-shaped", "text", "no-identity"])
+def test_resume_refuses_an_unusable_checkpoint_up_front(two_captures, tmp_path, capsys,
+                                                        monkeypatch, make, words):
+    """An empty, truncated, wrong-shaped, foreign or identity-less checkpoint_G.npz beside a
+    good checkpoint_R.npz: exit 2 before any fitting, one line naming the file, and neither
+    file touched (formerly a traceback after the whole MAP, issue 17)."""
+    a, _ = two_captures
+    out = tmp_path / "F"
+    out.mkdir()
+    _write_checkpoint(out / "checkpoint_R.npz", _identity(a))
+    make(out / "checkpoint_G.npz")
+    before = _snapshot(out)
+    code, err = _resume(a, out, capsys, monkeypatch)
+    assert code == 2
+    _one_line(err, "checkpoint_G.npz", words)
+    assert _snapshot(out) == before

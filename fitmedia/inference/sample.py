@@ -4,6 +4,7 @@ converged), checkpointed in emcee's HDF5 backend so a killed run resumes."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -70,13 +71,15 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
               checkpoint: Path | None = None, resume: bool = False,
               n_walkers: int | None = None, n_tau: float = 50.0, max_steps: int = 20000,
               check_every: int = 100, progress: bool = True, label: str = "",
-              redraw: Redraw | None = None) -> ChainResult:
+              redraw: Redraw | None = None, identity: dict | None = None) -> ChainResult:
     """Run emcee until the chain is ``n_tau`` autocorrelation times long.
 
     Converged means: steps >= n_tau * max(tau), the tau estimate changed by less
     than 5 % since the previous check, the split R-hat across walker groups is
     <= 1.01 and the bulk ESS >= 400 (ArviZ).  With ``resume`` and an existing
-    checkpoint, sampling continues from its last state (no steps repeated).
+    checkpoint, sampling continues from its last state (no steps repeated).  ``identity``
+    (:func:`fitmedia.inference.identity.run_identity`) is stored in the checkpoint; a checkpoint
+    of another identity is refused with an InputError.
     ``redraw``: an extra Metropolis-Hastings move beside differential evolution (:class:`Redraw`).
     """
     import emcee
@@ -85,7 +88,13 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     ndim = len(x_map)
     n_walkers = n_walkers or max(4 * ndim, 16)
     backend = emcee.backends.Backend()
-    restored = load_checkpoint(checkpoint, backend) if (resume and checkpoint is not None) else None
+    restored = load_checkpoint(checkpoint, backend, identity) \
+        if (resume and checkpoint is not None) else None
+    if restored is not None and backend.shape != (backend.nwalkers, ndim):
+        from ..errors import InputError
+
+        raise InputError(f"{checkpoint}: checkpoint of {backend.ndim} parameters, this fit has "
+                         f"{ndim}; remove it to start afresh")
     if restored is None:
         backend.reset(n_walkers, ndim)
         start = start_walkers(log_prob, x_map, cov, lower, upper, n_walkers, rng)
@@ -103,6 +112,7 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     # a resumed chain continues with the random state stored in its checkpoint
     sampler._random = np.random.RandomState(int(rng.integers(2**31 - 1)))
     done = sampler.iteration
+    ident = json.dumps(identity, sort_keys=True)
     old_tau = np.inf
     converged, reason = False, f"step cap {max_steps} reached before {n_tau:g} autocorrelation times"
     tau = np.full(ndim, np.nan)
@@ -116,7 +126,7 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
             if it % check_every:
                 continue
             if checkpoint is not None:
-                save_checkpoint(checkpoint, backend)
+                save_checkpoint(checkpoint, backend, ident)
             tau = sampler.get_autocorr_time(tol=0)
             need = n_tau * np.max(tau)
             bar.set_postfix_str(f"tau={np.max(tau):.0f}, need {need:.0f}")
@@ -135,7 +145,7 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     finally:
         bar.close()
     if checkpoint is not None:
-        save_checkpoint(checkpoint, backend)
+        save_checkpoint(checkpoint, backend, ident)
     n_steps = sampler.iteration
     if n_steps >= 2 * check_every and not np.all(np.isfinite(tau)):
         tau = sampler.get_autocorr_time(tol=0)
@@ -316,9 +326,15 @@ def to_inference_data(chain: np.ndarray, names: list[str], *, log_prob: np.ndarr
     return az.from_dict(posterior=post, sample_stats=stats)
 
 
-def save_checkpoint(path: Path, backend) -> None:
-    """The chain so far and the sampler's random state, written atomically (a kill -9 leaves
-    the previous checkpoint intact)."""
+#: What a checkpoint holds besides the chain: the sampler's random state, the run identity
+CHECKPOINT_KEYS = ("chain", "log_prob", "accepted", "iteration", "rs_name", "rs_keys", "rs_pos",
+                   "rs_has_gauss", "rs_gauss", "identity")
+
+
+def save_checkpoint(path: Path, backend, identity: str) -> None:
+    """The chain so far, the sampler's random state and the run's identity (one JSON line,
+    :mod:`fitmedia.inference.identity`), written atomically (a kill -9 leaves the previous
+    checkpoint intact)."""
     from ..util import save_npz
 
     it = backend.iteration
@@ -326,27 +342,80 @@ def save_checkpoint(path: Path, backend) -> None:
     save_npz(path, {"chain": backend.chain[:it], "log_prob": backend.log_prob[:it],
                     "accepted": backend.accepted, "iteration": np.array(it),
                     "rs_name": np.array(name), "rs_keys": keys, "rs_pos": np.array(pos),
-                    "rs_has_gauss": np.array(has_gauss), "rs_gauss": np.array(gauss)})
+                    "rs_has_gauss": np.array(has_gauss), "rs_gauss": np.array(gauss),
+                    "identity": np.array(identity)})
 
 
-def load_checkpoint(path: Path, backend):
-    """Fill an emcee in-memory backend from a checkpoint; returns the State to continue from,
-    or None when there is no usable checkpoint."""
-    import emcee
+def read_checkpoint(path: Path) -> dict:
+    """A checkpoint's arrays, checked for shape and consistency; an InputError naming the
+    file when it is empty, truncated, not a checkpoint or inconsistent."""
+    import zipfile
+    import zlib
 
     from ..errors import InputError
 
+    def bad(why: str) -> InputError:
+        return InputError(f"{path}: not a usable checkpoint ({why}); remove it to start afresh")
+    try:
+        if Path(path).stat().st_size == 0:
+            raise bad("empty file")
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
+            missing = [k for k in CHECKPOINT_KEYS if k not in z.files and k != "identity"]
+            if missing:
+                raise bad(f"no {', '.join(missing)}")
+            # written before checkpoints held the run's identity: "null", refused by identity
+            d = {k: z[k] if k in z.files else np.array("null") for k in CHECKPOINT_KEYS}
+    except InputError:
+        raise
+    except (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error) as exc:
+        raise bad(f"{type(exc).__name__}: {str(exc) or 'truncated?'}") from None
+    chain, lp, acc = d["chain"], d["log_prob"], d["accepted"]
+    if chain.ndim != 3 or chain.shape[1] < 2 or chain.shape[2] < 1:
+        raise bad(f"chain of shape {chain.shape}, expected (steps, walkers, parameters)")
+    if lp.shape != chain.shape[:2] or acc.shape != chain.shape[1:2]:
+        raise bad(f"log_prob {lp.shape} or accepted {acc.shape} do not match chain {chain.shape}")
+    if d["iteration"].shape != () or int(d["iteration"]) != len(chain):
+        raise bad(f"iteration {d['iteration']} for a chain of {len(chain)} steps")
+    if d["identity"].shape != () or d["rs_keys"].shape != (624,):
+        raise bad("identity or random state of the wrong shape")
+    if not (np.all(np.isfinite(chain)) and not np.any(np.isnan(lp))):
+        raise bad("non-finite positions or NaN log posterior")
+    return d
+
+
+def check_checkpoint(path: Path, identity: dict) -> dict:
+    """Refuse (InputError) a checkpoint that is unusable (:func:`read_checkpoint`) or was
+    written by a run of another identity, naming what differs; else return its arrays."""
+    from ..errors import InputError
+    from .identity import identity_differences
+
+    d = read_checkpoint(path)
+    try:
+        stored = json.loads(str(d["identity"]))
+    except ValueError:
+        stored = None
+    diff = identity_differences(stored, identity)
+    if diff:
+        raise InputError(f"{path}: checkpoint written by another run (what differs: "
+                         f"{'; '.join(diff)}); use a new --out folder, or remove the "
+                         "checkpoint_*.npz files to start afresh")
+    return d
+
+
+def load_checkpoint(path: Path, backend, identity: dict | None = None):
+    """Fill an emcee in-memory backend from a checkpoint; returns the State to continue from,
+    or None when there is no checkpoint.  With ``identity``, one of another run is refused
+    (:func:`check_checkpoint`)."""
+    import emcee
+
     if not Path(path).exists():
         return None
-    try:
-        with np.load(path) as z:
-            chain, lp, acc = z["chain"], z["log_prob"], z["accepted"]
-            rs = (str(z["rs_name"]), z["rs_keys"], int(z["rs_pos"]), int(z["rs_has_gauss"]),
-                  float(z["rs_gauss"]))
-    except (OSError, KeyError, ValueError) as exc:
-        raise InputError(f"{path}: checkpoint unreadable ({exc}); remove it to start afresh") from None
+    d = read_checkpoint(path) if identity is None else check_checkpoint(path, identity)
+    chain, lp, acc = d["chain"], d["log_prob"], d["accepted"]
     if len(chain) == 0:
         return None
+    rs = (str(d["rs_name"]), d["rs_keys"], int(d["rs_pos"]), int(d["rs_has_gauss"]),
+          float(d["rs_gauss"]))
     backend.reset(chain.shape[1], chain.shape[2])
     backend.chain, backend.log_prob = chain.copy(), lp.copy()
     backend.accepted = acc.copy()
