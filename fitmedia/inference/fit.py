@@ -138,6 +138,9 @@ def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, floa
 
 def prepare(spec: Spec) -> Prepared:
     """Load every image, estimate or read the noise, calibrate the light's brightness."""
+    from ..memory import check_memory
+
+    check_memory(spec, "fit")  # before any image is read: a huge camera.size is refused here
     shape = (spec.camera.height, spec.camera.width)
     ch_idx = tuple(CHANNELS.index(c) for c in spec.channels)
     notes: list[str] = []
