@@ -1,0 +1,438 @@
+"""Vectorised numpy path tracer for the light the analytic model leaves out.
+
+Paths start at the camera (through the front wall, ``geometry.trace_to_water``),
+are forced to scatter once on the camera ray, and then random-walk in the tank:
+free flights sampled with kappa_t, Henyey–Greenstein directions, the five black
+walls and the bulb absorb, the front wall reflects (Fresnel, total internal
+reflection at the glass/air face beyond ~49 degrees in the water).  At every
+scattering vertex the bulb is connected explicitly (next-event estimation):
+
+* directly, by sampling the bulb's visible cap uniformly in solid angle
+  (skipped at the first vertex: that is the analytic single scattering);
+* through one reflection at the water/glass face (the bulb's mirror image is
+  an exact sphere: cap sampling again, weight R_wg);
+* through the glass and one reflection at its outer face (a cone around the
+  chief ray, found by Newton's method, wide enough to hold the shifted image;
+  each sampled ray is traced exactly; weight T_wg^2 R_ga / (1 - R_wg R_ga), the
+  internal reflections summed with the first one's lateral shift).
+
+The weights carry no albedo: a vertex of order k contributes albedo^k times the
+stored value, so one trace gives the image for every albedo.  Random numbers are
+drawn per order for every path index (common random numbers): a fixed seed
+makes the estimate a smooth function of kappa_t and g except where a path
+changes its fate (wall, bulb, roulette).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import threading
+
+from ..geometry import WaterRays, fresnel_transmittance, trace_to_water
+from ..medium import hg_phase
+from ..spec import Camera, Light, Tank
+from .bulb_cap import A_OPAQUE, cap_table, log_cap_attenuation
+
+#: Half-angle of the slab-mirror cone, as a multiple of asin(r / water path).
+SLAB_CONE_MARGIN = 1.3
+RR_MIN = 0.05  # lowest survival probability of the roulette
+N_UNIFORMS = 12  # random numbers per path and order
+MIX_FRACTION = 1.0 / 3.0  # vertices: free flight, equiangular, forward peak, a third each
+GUIDE_FRACTION = 0.5  # share of scattering directions drawn towards the bulb (one-sample MIS)
+
+
+def frame(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors completing the unit vectors ``w`` (N, 3) to orthonormal frames
+    (Duff et al. 2017, branchless)."""
+    s = np.where(w[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (s + w[:, 2])
+    b = w[:, 0] * w[:, 1] * a
+    t = np.stack([1.0 + s * w[:, 0] ** 2 * a, s * b, -s * w[:, 0]], axis=1)
+    bb = np.stack([b, s + w[:, 1] ** 2 * a, -w[:, 1]], axis=1)
+    return t, bb
+
+
+def around(w: np.ndarray, cos_t: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Unit directions at angle acos(cos_t) from ``w`` and azimuth ``phi``."""
+    t, b = frame(w)
+    sin_t = np.sqrt(np.clip(1.0 - cos_t * cos_t, 0.0, None))
+    return (cos_t[:, None] * w + (sin_t * np.cos(phi))[:, None] * t
+            + (sin_t * np.sin(phi))[:, None] * b)
+
+
+def sample_hg(v: np.ndarray, g: float, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
+    """New directions of travel after a Henyey–Greenstein scattering of ``v``."""
+    if abs(g) < 1e-4:
+        cos_t = 1.0 - 2.0 * u1
+    else:
+        q = (1.0 - g * g) / (1.0 - g + 2.0 * g * u1)
+        cos_t = np.clip((1.0 + g * g - q * q) / (2.0 * g), -1.0, 1.0)
+    return around(v, cos_t, 2.0 * np.pi * u2)
+
+
+def guide_to(x: np.ndarray, c: np.ndarray, r: float, u1: np.ndarray, u2: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Directions drawn around the bulb's direction from x with density in solid angle
+    p(theta) = K theta / ((theta^2 + alpha^2) sin theta), alpha = asin(r / d), on theta in
+    [0, pi] (theta^2 = alpha^2 ((1 + pi^2 / alpha^2)^u - 1)): the 1/theta rise of the glow
+    seen from x towards the bulb.  Returns (directions, axis, alpha, log(1 + pi^2 / alpha^2))."""
+    dc = c - x
+    d = np.linalg.norm(dc, axis=1)
+    axis = dc / d[:, None]
+    alpha = np.arcsin(np.minimum(r / d, 1.0))
+    span = np.log1p((np.pi / alpha) ** 2)
+    theta = alpha * np.sqrt(np.expm1(u1 * span))
+    return around(axis, np.cos(np.minimum(theta, np.pi)), 2.0 * np.pi * u2), axis, alpha, span
+
+
+def guide_pdf(w: np.ndarray, axis: np.ndarray, alpha: np.ndarray, span: np.ndarray) -> np.ndarray:
+    """Density in solid angle of ``guide_to``'s directions ``w``."""
+    cos_t = np.clip(np.einsum("ij,ij->i", w, axis), -1.0, 1.0)
+    theta = np.arccos(cos_t)
+    sin_t = np.sqrt(1.0 - cos_t * cos_t)
+    ratio = np.where(theta > 1e-6, theta / np.maximum(sin_t, 1e-300), 1.0)
+    return ratio / ((theta * theta + alpha * alpha) * np.pi * span)
+
+
+def sphere_hit(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float) -> np.ndarray:
+    """Distance along unit rays (o, d) to the first hit of the sphere (c, r); inf if none."""
+    oc = c - o
+    b = np.einsum("ij,ij->i", oc, d)
+    h2 = np.einsum("ij,ij->i", oc, oc) - b * b
+    disc = r * r - h2
+    with np.errstate(invalid="ignore"):
+        s = b - np.sqrt(disc)
+    return np.where((disc > 0) & (s > 0), s, np.inf)
+
+
+def box_exit(o: np.ndarray, d: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance to the tank's inner box along rays from inside, and whether the exit face
+    is the front wall (z = +half_z)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = np.where(d > 0, half, -half)
+        dist = np.where(d != 0, (bound - o) / d, np.inf)
+    dist = np.clip(dist, 0.0, None)
+    face = np.argmin(dist, axis=1)
+    s = dist[np.arange(len(o)), face]
+    return s, (face == 2) & (d[:, 2] > 0)
+
+
+@dataclass(frozen=True)
+class Wall:
+    """The front wall seen from the water: indices and thickness."""
+
+    n_water: float
+    n_glass: float
+    thickness: float
+
+    def reflectances(self, cos_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R1, R2): reflection at the water/glass face, and through the glass off its outer
+        face with the internal reflections summed; ``cos_w`` the cosine in the water."""
+        if self.thickness <= 0:
+            return 1.0 - fresnel_transmittance(cos_w, self.n_water, 1.0), np.zeros_like(cos_w)
+        r_wg = 1.0 - fresnel_transmittance(cos_w, self.n_water, self.n_glass)
+        sin_g = self.n_water / self.n_glass * np.sqrt(np.clip(1.0 - cos_w * cos_w, 0.0, 1.0))
+        r_ga = 1.0 - fresnel_transmittance(np.sqrt(1.0 - sin_g * sin_g), self.n_glass, 1.0)
+        t = 1.0 - r_wg
+        return r_wg, t * t * r_ga / np.maximum(1.0 - r_wg * r_ga, 1e-12)
+
+    def shift(self, d: np.ndarray) -> np.ndarray:
+        """Lateral displacement (N, 3) of a ray of direction ``d`` (d_z > 0) that crosses the
+        glass, reflects off its outer face and comes back: 2 t tan(theta_glass) outward."""
+        sin_w = np.hypot(d[:, 0], d[:, 1])
+        sin_g = self.n_water / self.n_glass * sin_w
+        tan_g = sin_g / np.sqrt(1.0 - sin_g * sin_g)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            k = np.where(sin_w > 0, 2.0 * self.thickness * tan_g / sin_w, 0.0)
+        out = np.zeros_like(d)
+        out[:, 0], out[:, 1] = k * d[:, 0], k * d[:, 1]
+        return out
+
+    def chief_angle(self, rho: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Angle theta in the water of the ray that reaches lateral offset ``rho`` after going
+        down ``depth`` = (a + b) of water and back through the glass: Newton's method on
+        depth tan(theta) + 2 t tan(theta_g) = rho, from the thin-wall root (convex, increasing
+        function: the iterates decrease monotonically to the root)."""
+        th = np.arctan2(rho, depth)
+        m = self.n_water / self.n_glass
+        for _ in range(5):
+            s, c = np.sin(th), np.cos(th)
+            sg = m * s
+            cg = np.sqrt(1.0 - sg * sg)
+            f = depth * s / c + 2 * self.thickness * sg / cg - rho
+            df = depth / (c * c) + 2 * self.thickness * m * c / cg**3
+            th = np.clip(th - f / df, 0.0, 0.5 * np.pi - 1e-9)
+        return th
+
+
+_M1, _M2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
+
+
+def uniforms(seed: int, order: int, ids: np.ndarray, n_dims: int) -> np.ndarray:
+    """Counter-based uniforms in [0, 1) of shape (len(ids), n_dims): a function of (seed,
+    order, path index, dimension) only (splitmix64's finaliser), so a path draws the same
+    numbers whichever other paths are alive (common random numbers at a cost per live path)."""
+    base = (ids.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+            + np.uint64((seed * 1_000_003 + order * 64) % (1 << 63)))
+    z = base[:, None] + np.arange(n_dims, dtype=np.uint64)[None, :] * np.uint64(0xD1B54A32D192ED03)
+    z ^= z >> np.uint64(30)
+    z *= _M1
+    z ^= z >> np.uint64(27)
+    z *= _M2
+    z ^= z >> np.uint64(31)
+    return (z >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+
+
+class PathTracer:
+    """The estimator for one camera (the low-resolution one), tank and bulb.
+
+    ``trace`` returns per batch, order and pixel the sum of path contributions for a
+    unit-radiance bulb and albedo 1 (multiply order k by albedo^k).
+    """
+
+    def __init__(self, camera: Camera, tank: Tank, water_ior: float, light: Light, single):
+        if light.type != "bulb":
+            raise NotImplementedError("the multiple-scattering estimator handles the bulb only")
+        self.camera, self.tank, self.light = camera, tank, light
+        self.half = tank.half
+        self.c = np.asarray(light.position, float)
+        self.r = float(light.radius)
+        self.wall = Wall(water_ior, tank.wall_ior, tank.wall_thickness)
+        self.n_pix = camera.width * camera.height
+        self.water_ior = water_ior
+        self._single = single  # a SingleScattering of the same light: its line integrals
+
+    # ------------------------------------------------------------ connections
+    def _cap(self, x, centre, u1, u2):
+        """Sample the cap of the sphere (centre, r) seen from x: (directions, solid angle,
+        distance to the sphere along them)."""
+        dc = centre - x
+        d = np.linalg.norm(dc, axis=1)
+        sin_a = np.minimum(self.r / d, 1.0)
+        one_m_cos = sin_a * sin_a / (1.0 + np.sqrt(1.0 - sin_a * sin_a))
+        cos_b = 1.0 - u1 * one_m_cos
+        w = around(dc / d[:, None], cos_b, 2.0 * np.pi * u2)
+        sin2_b = 1.0 - cos_b * cos_b
+        ell = d * cos_b - np.sqrt(np.clip(self.r**2 - d * d * sin2_b, 0.0, None))
+        return w, 2.0 * np.pi * one_m_cos, ell
+
+    def nee_direct(self, x, v, kt, g, u):
+        w, omega, ell = self._cap(x, self.c, u[:, 0], u[:, 1])
+        return omega * hg_phase(np.einsum("ij,ij->i", w, v), g) * np.exp(-kt * ell)
+
+    def _in_face(self, q):
+        return (np.abs(q[:, 0]) < self.half[0]) & (np.abs(q[:, 1]) < self.half[1])
+
+    def nee_mirror(self, x, v, kt, g, u):
+        """Both one-reflection connections to the bulb through the front wall."""
+        hz = self.half[2]
+        img = self.c.copy()
+        img[2] = 2 * hz - img[2]
+        # 1: the water/glass face, an exact plane mirror
+        w, omega, ell = self._cap(x, np.broadcast_to(img, x.shape), u[:, 0], u[:, 1])
+        s_q = (hz - x[:, 2]) / w[:, 2]
+        q = x + s_q[:, None] * w
+        r1, _ = self.wall.reflectances(w[:, 2])
+        ok = self._in_face(q) & (sphere_hit(x, w, self.c, self.r) > s_q)
+        out = np.where(ok, omega * hg_phase(np.einsum("ij,ij->i", w, v), g) * r1
+                       * np.exp(-kt * ell), 0.0)
+        if self.wall.thickness <= 0:
+            return out
+        return out + self._slab(x, v, kt, g, u[:, 2], u[:, 3])
+
+    def _slab(self, x, v, kt, g, u1, u2):
+        hz = self.half[2]
+        hvec = self.c[None, :2] - x[:, :2]
+        rho = np.linalg.norm(hvec, axis=1)
+        depth = (hz - x[:, 2]) + (hz - self.c[2])
+        th = self.wall.chief_angle(rho, depth)
+        hu = np.where(rho[:, None] > 0, hvec / np.maximum(rho, 1e-300)[:, None], 0.0)
+        chief = np.column_stack([np.sin(th)[:, None] * hu, np.cos(th)])
+        water = depth / np.cos(th)
+        sin_a = np.minimum(SLAB_CONE_MARGIN * self.r / water, 1.0)
+        one_m_cos = sin_a * sin_a / (1.0 + np.sqrt(1.0 - sin_a * sin_a))
+        w = around(chief, 1.0 - u1 * one_m_cos, 2.0 * np.pi * u2)
+        up = w[:, 2] > 1e-9
+        s_q = np.where(up, (hz - x[:, 2]) / np.where(up, w[:, 2], 1.0), 0.0)
+        q1 = x + s_q[:, None] * w
+        q2 = q1 + self.wall.shift(np.where(up[:, None], w, chief))
+        wr = w * np.array([1.0, 1.0, -1.0])
+        ell = sphere_hit(q2, wr, self.c, self.r)
+        ok = (up & self._in_face(q1) & self._in_face(q2) & np.isfinite(ell)
+              & (sphere_hit(x, w, self.c, self.r) > s_q))
+        _, r2 = self.wall.reflectances(np.clip(w[:, 2], 0.0, 1.0))
+        with np.errstate(invalid="ignore", over="ignore"):
+            val = (2 * np.pi * one_m_cos * hg_phase(np.einsum("ij,ij->i", w, v), g) * r2
+                   * np.exp(-kt * (s_q + ell)))
+        return np.where(ok, val, 0.0)
+
+    # ------------------------------------------------------------------ segments
+    def _segment_lines(self, o, v, length, kt, g):
+        """Single scattering towards ``o`` along each ray (o, v, length) from a unit bulb,
+        per unit albedo: the analytic model's line integral (exact cap average, sinh-mapped
+        Gauss-Legendre nodes) run on arbitrary rays."""
+        out = np.zeros(len(o))
+        live = length > 0
+        if not live.any():
+            return out
+        seg = _line_model(self._single, o[live], v[live], length[live])
+        a = kt * self.r
+        if a > A_OPAQUE:
+            return out
+        lines = seg._line_integrals(np.array([kt]), np.array([g]))[:, 0]
+        e_cap = np.exp(log_cap_attenuation(a))
+        out[live] = np.pi * self.r**2 * e_cap * kt / seg._h * lines
+        return out
+
+    def _walls(self, x, v, u_r):
+        """Where each ray from x along v meets the tank: distance to the first wall or the
+        bulb, and for rays that reach the front wall and are reflected (Fresnel choice by
+        ``u_r``): their index, restart point, reflected direction and free length."""
+        d_box, front = box_exit(x, v, self.half)
+        d_b = sphere_hit(x, v, self.c, self.r)
+        i = np.flatnonzero(front & (d_b > d_box))
+        xi, vi = x[i] + d_box[i, None] * v[i], v[i].copy()
+        r1, r2 = self.wall.reflectances(vi[:, 2])
+        one = u_r[i] < r1
+        two = ~one & (u_r[i] < r1 + r2)
+        xi = xi + np.where(two[:, None], self.wall.shift(vi), 0.0)
+        vi[:, 2] = -vi[:, 2]
+        ok = (one | two) & self._in_face(xi)
+        i, xi, vi = i[ok], xi[ok], vi[ok]
+        d2 = np.minimum(box_exit(xi, vi, self.half)[0], sphere_hit(xi, vi, self.c, self.r))
+        return np.minimum(d_box, d_b), (i, xi, vi, d2)
+
+    def _scatter(self, x, v, g, u, u_pick):
+        """New directions, from the phase function or towards the bulb (one-sample mixture),
+        and their weights p_HG / p_mixture."""
+        w_hg = sample_hg(v, g, u[:, 0], u[:, 1])
+        w_gd, axis, alpha, span = guide_to(x, self.c, self.r, u[:, 0], u[:, 1])
+        w = np.where((u_pick < GUIDE_FRACTION)[:, None], w_gd, w_hg)
+        p_hg = hg_phase(np.einsum("ij,ij->i", w, v), g)
+        p_mix = (1 - GUIDE_FRACTION) * p_hg + GUIDE_FRACTION * guide_pdf(w, axis, alpha, span)
+        return w, p_hg / p_mix
+
+    def _collide(self, x, v, kt, eps, u_s, u_pick, stop, refl):
+        """Forced next vertex on the segment (and its reflected part): a one-sample mixture,
+        in equal parts, of the free-flight density truncated to the segment, equiangular
+        sampling towards the bulb on the first part, and a sinh map of the angle to the bulb
+        around its forward direction (width ``eps``).  Returns (alive, x, weight kt T(s) / p_mixture(s))."""
+        n = len(x)
+        i, xi, vi, d2 = refl
+        tail = np.zeros(n)
+        tail[i] = d2
+        total = stop + tail
+        alive = total > 0
+        p_col = -np.expm1(-kt * total)
+        s_exp = -np.log1p(-u_s * p_col) / kt
+        oc = self.c - x
+        s0 = np.einsum("ij,ij->i", oc, v)
+        h = np.maximum(np.sqrt(np.clip(np.einsum("ij,ij->i", oc, oc) - s0 * s0, 0.0, None)), 1e-9)
+        th_a, th_b = np.arctan2(-s0, h), np.arctan2(stop - s0, h)
+        # equiangular: phi uniform on [th_a, th_b]; forward: w = phi + pi/2 on a sinh map from
+        # its low end (the bulb ahead: the phase function's forward peak, width eps)
+        w_a, w_b = th_a + 0.5 * np.pi, th_b + 0.5 * np.pi
+        span = np.arcsinh((w_b - w_a) / eps)
+        phi = np.where(u_pick < 2 * MIX_FRACTION, th_a + u_s * (th_b - th_a),
+                       w_a + eps * np.sinh(u_s * span) - 0.5 * np.pi)
+        s_ang = np.clip(s0 + h * np.tan(np.clip(phi, -0.5 * np.pi + 1e-12, 0.5 * np.pi - 1e-12)),
+                        0.0, stop)
+        s = np.where(u_pick < MIX_FRACTION, s_exp, s_ang)
+        dens = kt * np.exp(-kt * s)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            p_e = np.where(alive, dens / p_col, 0.0)
+            on = (s <= stop) & (th_b > th_a)
+            jac = h / (h * h + (s - s0) ** 2)  # dphi / ds
+            p_q = np.where(on, jac / (th_b - th_a), 0.0)
+            w_s = np.arctan2(s - s0, h) + 0.5 * np.pi
+            p_f = np.where(on, jac / (np.sqrt(eps * eps + (w_s - w_a) ** 2) * span), 0.0)
+            wgt = np.where(alive, dens / (MIX_FRACTION * (p_e + p_q + p_f)), 0.0)
+        x = x + np.minimum(s, stop)[:, None] * v
+        if len(i):
+            past = s[i] > stop[i]
+            x[i] = np.where(past[:, None], xi + (s[i] - stop[i])[:, None] * vi, x[i])
+        return alive & (wgt > 0), x, wgt
+
+    def _segment_nee(self, x, v, kt, g, stop, refl):
+        """Order-(k+1) light along the next segment (and its reflected part)."""
+        c = self._segment_lines(x, v, stop, kt, g)
+        i, xi, vi, d2 = refl
+        if len(i):
+            c[i] += np.exp(-kt * stop[i]) * self._segment_lines(xi, vi, d2, kt, g)
+        return c
+
+    # -------------------------------------------------------------------- trace
+    def trace(self, kt: float, g: float, n_per_pixel: int, seed: int, batches: int,
+              max_order: int = 400, rr_albedo: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Sums of contributions (batches, max_order + 1, H * W) and samples that entered the
+        water per pixel (H * W,); index 0 of the order axis is unused."""
+        n = self.n_pix * n_per_pixel
+        pid = np.arange(n)
+        pix = pid // n_per_pixel
+        batch = pid % n_per_pixel % batches
+        acc = np.zeros((batches, max_order + 2, self.n_pix))
+        u0 = uniforms(seed, 0, pid, 4)
+        cam = self.camera
+        rays = trace_to_water(cam, self.tank, self.water_ior, pix % cam.width + u0[:, 0],
+                              pix // cam.width + u0[:, 1])
+        entered = np.bincount(pix, weights=(rays.factor > 0).astype(float), minlength=self.n_pix)
+        length = np.minimum(rays.length, sphere_hit(rays.origin, rays.direction, self.c, self.r))
+        ids = np.flatnonzero((rays.factor > 0) & (length > 0))
+        none = (np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        v = rays.direction[ids]
+        eps = float(np.clip((1 - abs(g)) / np.sqrt(abs(g) + 1e-3), 1e-3, 1.0))
+        alive, x, wgt = self._collide(rays.origin[ids], v, kt, eps, u0[ids, 2], u0[ids, 3],
+                                      length[ids], none)
+        wgt = wgt * rays.factor[ids]
+        w_ref = np.where(alive, wgt, 0.0)
+        ids, x, v, wgt, w_ref = ids[alive], x[alive], v[alive], wgt[alive], w_ref[alive]
+        a_rr = float(np.clip(rr_albedo, 0.0, 1.0))
+
+        def add(order, values):
+            acc[:, order, :] += np.bincount(batch[ids] * self.n_pix + pix[ids], weights=values,
+                                            minlength=batches * self.n_pix).reshape(batches, -1)
+
+        for k in range(1, max_order + 1):
+            if not len(ids):
+                break
+            u = uniforms(seed, k, ids, N_UNIFORMS)
+            add(k, wgt * self.nee_mirror(x, v, kt, g, u[:, 2:6]))
+            v, f = self._scatter(x, v, g, u[:, 6:8], u[:, 11])
+            wgt = wgt * f
+            stop, refl = self._walls(x, v, u[:, 9])
+            add(k + 1, wgt * self._segment_nee(x, v, kt, g, stop, refl))
+            alive, x, f = self._collide(x, v, kt, eps, u[:, 8], u[:, 1], stop, refl)
+            wgt = wgt * f
+            # roulette on the weight the next order would carry at albedo rr_albedo
+            q = np.clip(wgt * a_rr ** k / w_ref, RR_MIN, 1.0)
+            alive &= u[:, 10] < q
+            wgt = wgt / q
+            ids, x, v, wgt, w_ref = ids[alive], x[alive], v[alive], wgt[alive], w_ref[alive]
+        return acc, entered
+
+
+def _line_model(tpl, o, v, length):
+    """A SingleScattering whose rays are (o, v, length) instead of the camera's, for its line
+    integrals (the per-ray set-up of ``SingleScattering._build``, bulb only)."""
+    from .single import SingleScattering
+
+    seg = object.__new__(SingleScattering)
+    seg.__dict__.update({k: tpl.__dict__[k] for k in ("light", "nodes", "nodes_upper", "_rules")})
+    seg._frozen, seg._cap_cells, seg._freezing = None, None, False
+    seg._work = threading.local()
+    c, r = tpl.light.position, tpl.light.radius
+    s0, h = SingleScattering._closest(WaterRays(o, v, length, length), c)
+    s_hit = s0 - np.sqrt(np.clip(r * r - h * h, 0.0, None))
+    hit = (h < r) & (s_hit > 0) & (s_hit < length)
+    hi = np.where(hit, s_hit, length)
+    h = np.maximum(h, 1e-9 * max(tpl.spec.tank.inner_size))
+    seg._s0, seg._h, seg._rho = s0, h, r / h
+    seg._cap_row, seg._cap_frac = cap_table().rows(seg._rho)
+    seg._cap_hit = seg._rho >= 1.0
+    empty = hi <= 0
+    seg._phi_a = np.where(empty, 0.0, np.arctan2(-s0, h))
+    seg._phi_b = np.where(empty, 0.0, np.arctan2(hi - s0, h))
+    return seg
