@@ -22,3 +22,18 @@ bench:
 
 synthetic:
 	fitmedia synth capture_specs/bulb_120x90.yaml --medium "Lowfat Milk" --ml 16 --seed 2006 --out synthetic/default
+
+.PHONY: package-data mutation mutation-before
+
+# the package's copies of the bundled geometry and demo capture (tests/test_package_data.py)
+package-data:
+	cp capture_specs/*.yaml fitmedia/data/capture_specs/
+	cp synthetic/default/capture.yaml synthetic/default/truth.json fitmedia/data/synthetic/default/
+	cp synthetic/default/images/*.tiff fitmedia/data/synthetic/default/images/
+
+# hand-made physics mutants against the fast physics tests, on a copy in /tmp (docs/testing.md)
+mutation:
+	$(PY) tools/mutation.py
+
+mutation-before:
+	$(PY) tools/mutation.py --before

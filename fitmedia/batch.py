@@ -31,7 +31,7 @@ if TYPE_CHECKING:  # pragma: no cover  (imported in the functions: `fitmedia --h
     from .validate import Score, ValidationResult
 
 #: Geometry used by :func:`validate` when none is given (full size, 200 x 150 pixels).
-DEFAULT_GEOMETRY = Path(__file__).resolve().parents[1] / "capture_specs" / "bulb.yaml"
+DEFAULT_GEOMETRY = Path(__file__).resolve().parent / "data" / "capture_specs" / "bulb.yaml"
 #: Volume of liquid drawn per round when ``ml`` is not given: log-uniform in this range, ml.
 ML_RANGE = (8.0, 240.0)
 #: ``scheduler`` value that runs every task in this process, one after the other, without Dask.

@@ -95,12 +95,12 @@ def cmd_report(a) -> int:
 
 
 def cmd_demo(a) -> int:
-    """Fit the bundled default capture (synthetic/default)."""
+    """Fit the bundled default capture (synthetic/default, shipped as package data)."""
+    from .data import bundled_path
     from .inference.fit import FitOptions
     from .pipeline import fit
 
-    root = Path(__file__).resolve().parents[1]
-    spec = root / "synthetic" / "default" / "capture.yaml"
+    spec = bundled_path("synthetic", "default", "capture.yaml")
     res = fit(spec, a.out, FitOptions(seed=a.seed, progress=not a.quiet))
     print(f"wrote {Path(a.out) / 'results.json'} and {Path(a.out) / 'report.html'} "
           f"({res['wall_time_s']:.0f} s)")
