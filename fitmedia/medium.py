@@ -14,8 +14,7 @@ from importlib import resources
 import numpy as np
 
 from .errors import InputError
-
-CHANNELS = ("R", "G", "B")
+from .spec import CHANNELS
 
 
 @dataclass(frozen=True)
@@ -71,9 +70,19 @@ def hg_phase(cos_theta: np.ndarray, g: np.ndarray | float) -> np.ndarray:
 
     ``cos_theta`` is the cosine between the directions of travel before and after.
     """
+    return hg_phase_half_angle(0.5 * (1.0 - np.asarray(cos_theta, dtype=float)), g)
+
+
+def hg_phase_half_angle(sin2_half: np.ndarray, g: np.ndarray | float) -> np.ndarray:
+    """Henyey–Greenstein phase function of s = sin^2(theta / 2) (1/sr): the one place the
+    formula is written (forward models and tests call this or :func:`hg_phase`).
+
+    p = (1 - g^2) / (4 pi D^(3/2)), D = 1 + g^2 - 2 g cos(theta) = (1 - g)^2 + 4 g s, a form
+    without cancellation near the forward peak (g -> 1, theta -> 0), where D -> (1 - g)^2.
+    """
     g = np.asarray(g, dtype=float)
-    denom = 1.0 + g * g - 2.0 * g * cos_theta
-    return (1.0 - g * g) / (4.0 * np.pi * denom * np.sqrt(denom))
+    denom = (1.0 - g) ** 2 + 4.0 * g * sin2_half
+    return (1.0 - g * g) / (4.0 * np.pi) / (denom * np.sqrt(denom))
 
 
 def reference_table() -> dict[str, Medium]:

@@ -6,6 +6,8 @@ from typing import Protocol
 
 import numpy as np
 
+from ..errors import InputError
+
 
 class ForwardModel(Protocol):
     """Render one image of a capture spec for given medium parameters.
@@ -29,3 +31,29 @@ class ForwardModel(Protocol):
                brightness: np.ndarray) -> np.ndarray:
         """Arrays of shape (C,) in 1/mm (g unitless) -> image of shape (H, W, C)."""
         ...
+
+
+def _as_channels(name: str, value, n: int) -> np.ndarray:
+    v = np.asarray(value, dtype=float)
+    if v.ndim == 0:
+        v = np.full(n, float(v))
+    if v.shape != (n,):
+        raise InputError(f"{name}: expected {n} values (one per channel), got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"{name}: got {v.tolist()}: values must be finite")
+    return v
+
+
+def check_render_args(n_channels: int, kappa_a, kappa_s, g, brightness
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The one input check of ``ForwardModel.render``: scalars or arrays of shape (C,), finite,
+    kappa_a and kappa_s >= 0 (1/mm), -1 < g < 1.  Returns the four as float arrays of shape (C,);
+    raises InputError naming the offending argument."""
+    ka, ks, gg, br = (_as_channels(name, v, n_channels) for name, v in
+                      (("kappa_a", kappa_a), ("kappa_s", kappa_s), ("g", g),
+                       ("brightness", brightness)))
+    if np.any(ka < 0) or np.any(ks < 0):
+        raise InputError(f"kappa_a {ka.tolist()} and kappa_s {ks.tolist()} must be >= 0 (1/mm)")
+    if np.any(np.abs(gg) >= 1):
+        raise InputError(f"g: got {gg.tolist()}: need -1 < g < 1")
+    return ka, ks, gg, br

@@ -39,6 +39,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import pixel_grid, trace_to_water
 from ..spec import Camera, Light, Spec
+from .base import check_render_args
 
 log = logging.getLogger(__name__)
 
@@ -164,17 +165,6 @@ def scene_dict(mi, spec: Spec, image_index: int | None = 0, *, max_depth: int = 
     return d
 
 
-def _as_channels(name: str, value, n: int) -> np.ndarray:
-    v = np.asarray(value, dtype=float)
-    if v.ndim == 0:
-        v = np.full(n, float(v))
-    if v.shape != (n,):
-        raise InputError(f"{name}: expected {n} values (one per channel), got shape {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise InputError(f"{name}: got {v.tolist()}: values must be finite")
-    return v
-
-
 class MitsubaModel:
     """Monte Carlo image of one capture with Mitsuba 3 (ForwardModel interface).
 
@@ -255,20 +245,9 @@ class MitsubaModel:
             acc += n * (img[..., 0] if img.ndim == 3 else img)
         return acc / spp
 
-    def _check(self, kappa_a, kappa_s, g, brightness):
-        c = len(self.channels)
-        ka, ks, gg, br = (_as_channels(nm, v, c) for nm, v in
-                          (("kappa_a", kappa_a), ("kappa_s", kappa_s), ("g", g),
-                           ("brightness", brightness)))
-        if np.any(ka < 0) or np.any(ks < 0):
-            raise InputError(f"kappa_a {ka.tolist()} and kappa_s {ks.tolist()} must be >= 0 (1/mm)")
-        if np.any(np.abs(gg) >= 1):
-            raise InputError(f"g: got {gg.tolist()}: need -1 < g < 1")
-        return ka, ks, gg, br
-
     def _batches(self, kappa_a, kappa_s, g, brightness, batches: int) -> np.ndarray:
         """Images of ``batches`` independent batches, shape (batches, H, W, C)."""
-        ka, ks, gg, br = self._check(kappa_a, kappa_s, g, brightness)
+        ka, ks, gg, br = check_render_args(len(self.channels), kappa_a, kappa_s, g, brightness)
         spp_b = max(1, -(-self.spp // batches))
         seeds = [self.seed] if batches == 1 else self._seeds(batches, 1)
         out = np.empty((batches, *self.shape, len(self.channels)))

@@ -56,7 +56,9 @@ import numpy as np
 from scipy import sparse
 
 from ..geometry import WaterRays, pixel_grid, trace_to_water
+from ..medium import hg_phase_half_angle
 from ..spec import Camera, Spec
+from .base import check_render_args
 from .bulb_cap import (
     A_OPAQUE,
     CAP_A_MAX,
@@ -414,16 +416,16 @@ class SingleScattering:
                     _matvec_add(mat, tables[k], expo.reshape(-1))  # log pbar - kt (d + s)
                     total[rows, k] += np.einsum("ij,ij->i", np.exp(expo, out=expo), weight)
                     continue
-                # HG with cos(theta) = +-cos w written without cancellation near the peak
-                denom = ((1 + gk) ** 2 - 4 * gk * sin2) if upper else ((1 - gk) ** 2 + 4 * gk * sin2)
-                f = np.exp(-ktk * path) / (denom * np.sqrt(denom))
-                total[rows, k] += (1 - gk * gk) / (4 * np.pi) * np.einsum("ij,ij->i", f, weight)
+                # HG at cos(theta) = +-cos w: sin^2(theta/2) = sin^2(w/2) on the lower half,
+                # 1 - sin^2(w/2) on the upper one (no cancellation near the forward peak)
+                f = np.exp(-ktk * path)
+                f *= hg_phase_half_angle(1.0 - sin2 if upper else sin2, gk)
+                total[rows, k] += np.einsum("ij,ij->i", f, weight)
         return total
 
     def render(self, kappa_a, kappa_s, g, brightness) -> np.ndarray:
         """Image (H, W, C) of the radiance at the camera; see ForwardModel."""
-        ka, ks, gg, br = (np.broadcast_to(np.asarray(a, float), (len(self.channels),))
-                          for a in (kappa_a, kappa_s, g, brightness))
+        ka, ks, gg, br = check_render_args(len(self.channels), kappa_a, kappa_s, g, brightness)
         kt = ka + ks
         n_pix = self.shape[0] * self.shape[1]
         out = np.empty((*self.shape, len(self.channels)))
