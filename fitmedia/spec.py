@@ -141,7 +141,8 @@ SCHEMA = {
         "noise": {"type": "object", "additionalProperties": False,
                   "required": ["gain", "read_var"],
                   "properties": {"gain": {"type": "number", "minimum": 0},
-                                 "read_var": {"type": "number", "minimum": 0}}},
+                                 "read_var": {"type": "number", "minimum": 0},
+                                 "exposure_s": {"type": "number", "exclusiveMinimum": 0}}},
         "channels": {"type": "array", "items": {"enum": list(CHANNELS)},
                      "minItems": 1, "maxItems": 3, "uniqueItems": True},
     },
@@ -214,6 +215,7 @@ class Spec:
     images: tuple[ImageEntry, ...] = ()
     clear_water: ImageEntry | None = None
     noise: tuple[float, float] | None = None
+    noise_exposure: float | None = None  # exposure (s) the noise block refers to (docs/spec.md)
     channels: tuple[str, ...] = CHANNELS
     water_kappa_a: tuple[float, float, float] = (0.0, 0.0, 0.0)
     priors: dict = field(default_factory=dict)
@@ -416,7 +418,8 @@ def parse_spec(data: Any, *, source: str = "<spec>", base: Path | None = None,
     spec = Spec(source=source, name=str(data.get("name", Path(source).stem)), tank=tank,
                 medium_ior=float(data["medium"]["ior"]), camera=_camera(data["camera"]),
                 light=_light(data["light"], where, "light"), images=images, clear_water=cw,
-                noise=noise, channels=channels,
+                noise=noise, noise_exposure=(data.get("noise") or {}).get("exposure_s"),
+                channels=channels,
                 water_kappa_a=_channel_values(water, CHANNELS, where, "medium.water_kappa_a"),
                 priors=priors, raw=copy.deepcopy(data))
     _check_geometry(spec, where)

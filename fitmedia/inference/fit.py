@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..images import LoadedImage, checks, estimate_noise, load_entry
+from ..images import LoadedImage, checks, load_entry
+from ..images.noise import entry_noise, noise_summary
 from ..spec import CHANNELS, Spec
 from .likelihood import ChannelProblem, Observation
 from .optimize import find_map
@@ -67,6 +68,11 @@ class Prepared:
     brightness_source: str
     brightness_rel_sd: dict[str, float | None] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    # per entry ("images[i]", "calibration.clear_water"): the camera's noise (SensorNoise) and
+    # its per-pixel maps (gain_map, read_map) of shape (H, W, 3) (LoadedImage.variance_maps)
+    sensor_noise: dict = field(default_factory=dict)
+    noise_maps: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    noise_per_image: dict[str, dict] = field(default_factory=dict)  # results.json noise.per_image
 
 
 def _model(spec: Spec, image_index: int | None, channel: str, options: FitOptions):
@@ -125,7 +131,7 @@ def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, floa
             raise InputError(f"calibration.clear_water: {src}: the bulb's pixels are saturated or "
                              f"masked in channel {ch}; take a shorter exposure")
         d = clear.data[..., ci][use]
-        gain, read = noise[ch]
+        gain, read = (np.broadcast_to(v, m0.shape)[use] for v in noise[ch])  # maps or scalars
         w = 1.0 / (gain * np.maximum(d, 0) + read)
         fisher = np.sum(w * m0[use] ** 2)
         out[ch] = float(np.sum(w * d * m0[use]) / fisher)
@@ -158,16 +164,22 @@ def prepare(spec: Spec) -> Prepared:
     for _, _, im in named:
         checks.check_values(im, ch_idx, spec.channels)
     checks.check_distinct(named)
+    entries = list(spec.images) + ([spec.clear_water] if clear else [])
+    sensor, maps, per_image = {}, {}, {}
+    for (where, _, im), entry in zip(named, entries):
+        first = ("images[0]", sensor["images[0]"]) if "images[0]" in sensor else None
+        sensor[where] = entry_noise(spec.noise, spec.noise_exposure, entry, im, ch_idx, where,
+                                    first if where == "calibration.clear_water" else None)
+        maps[where] = im.variance_maps(sensor[where].a, sensor[where].b)
+        per_image[where] = noise_summary(sensor[where], im, maps[where], ch_idx)
     if spec.noise is not None:
         noise = {c: spec.noise for c in spec.channels}
         noise_source = "spec"
-    else:
-        noise = {}
-        for c, ci in zip(spec.channels, ch_idx):
-            noise[c] = estimate_noise(images[0].data[..., ci:ci + 1], images[0].valid[..., ci:ci + 1],
-                                      rng=0)
-        noise_source = "estimated from the first image"
-        notes.append("noise model estimated from the data (no `noise` in the spec)")
+    else:  # the first image's typical per-pixel values (its own; each image has its maps)
+        first = per_image["images[0]"]["per_channel"]
+        noise = {c: (first[c]["gain"], first[c]["read_var"]) for c in spec.channels}
+        noise_source = "estimated per image (results.json noise.per_image)"
+        notes.append("noise model estimated from each image (no `noise` in the spec)")
     for _, _, im in named:
         checks.check_negative(im, ch_idx, spec.channels, [noise[c][1] for c in spec.channels],
                               float(spec.priors.get("background_sd", 0.0)))
@@ -175,7 +187,10 @@ def prepare(spec: Spec) -> Prepared:
     light = spec.light
     rel_sd: dict[str, float | None] = {c: None for c in spec.channels}
     if light.type == "bulb" and clear is not None:
-        brightness, rel_sd = calibrate(spec, clear, noise)
+        g_c, r_c = maps["calibration.clear_water"]
+        brightness, rel_sd = calibrate(spec, clear, {c: (g_c[..., CHANNELS.index(c)],
+                                                         r_c[..., CHANNELS.index(c)])
+                                                     for c in spec.channels})
         source = "clear-water photo (prior: normal in log brightness, calibration's error)"
     elif light.brightness is not None:
         brightness = {c: light.brightness[CHANNELS.index(c)] for c in spec.channels}
@@ -189,7 +204,8 @@ def prepare(spec: Spec) -> Prepared:
             "no calibration.clear_water"
         notes.append(f"light brightness fitted as a free parameter ({why}): kappa_s is then only "
                      "constrained through its product with the brightness and the glow's shape")
-    return Prepared(spec, images, clear, noise, noise_source, brightness, source, rel_sd, notes)
+    return Prepared(spec, images, clear, noise, noise_source, brightness, source, rel_sd, notes,
+                    sensor, maps, per_image)
 
 
 def _kt_guess(spec: Spec, obs: list[Observation], brightness: float | None) -> float:
@@ -213,14 +229,15 @@ def _kt_guess(spec: Spec, obs: list[Observation], brightness: float | None) -> f
 def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np.ndarray],
                 brightness: float | None, brightness_rel_sd: float | None,
                 noise: tuple[float, float], options: FitOptions,
-                checkpoint: Path | None = None, seed: int = 0, identity: dict | None = None
-                ) -> dict:
+                checkpoint: Path | None = None, seed: int = 0, identity: dict | None = None,
+                noise_maps: list[tuple[np.ndarray, np.ndarray]] | None = None) -> dict:
     """MAP and (optionally) posterior samples of one channel; returns plain arrays/dicts.
     ``identity`` (:mod:`fitmedia.inference.identity`) goes into the chains' checkpoints."""
     obs = []
     for i, (d, v) in enumerate(zip(data, valid)):
         model = _model(spec, i, channel, options)
-        obs.append(Observation(model, d, v & model.support, spec.images[i].concentration))
+        g, r = noise_maps[i] if noise_maps else (None, None)  # per-pixel noise, when known
+        obs.append(Observation(model, d, v & model.support, spec.images[i].concentration, g, r))
     free = brightness is None or brightness_rel_sd is not None
     guess_b = brightness if brightness is not None else float(
         np.max([np.percentile(d[v], 99.9) for d, v in zip(data, valid)]) / 0.5)
@@ -427,7 +444,10 @@ def channel_args(prep: Prepared, ch: str, options: FitOptions, checkpoint_dir: P
     ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"checkpoint_{ch}.npz"
     return (prep.spec, ch, [im.data[..., ci] for im in prep.images],
             [im.valid[..., ci] for im in prep.images], prep.brightness[ch],
-            prep.brightness_rel_sd.get(ch), prep.noise[ch], options, ckpt, options.seed, identity)
+            prep.brightness_rel_sd.get(ch), prep.noise[ch], options, ckpt, options.seed, identity,
+            [(g[..., ci], r[..., ci]) for g, r in
+             (prep.noise_maps[f"images[{i}]"] for i in range(len(prep.images)))]
+            if prep.noise_maps else None)
 
 
 def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | None,
