@@ -117,7 +117,8 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
         "calibration": {"brightness_source": prep.brightness_source,
                         "brightness": {c: chans[c]["brightness"] for c in spec.channels}},
         "noise": {"source": prep.noise_source,
-                  "per_channel": {c: {"gain": g, "read_var": r} for c, (g, r) in prep.noise.items()}},
+                  "per_channel": {c: {"gain": g, "read_var": r} for c, (g, r) in prep.noise.items()},
+                  "per_image": prep.noise_per_image},  # source and values per entry (issue 16)
         "images": images,
         "notes": prep.notes,
     }
