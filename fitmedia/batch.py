@@ -486,15 +486,15 @@ def _add_runner_args(p) -> None:
 
 def add_validate_parser(sub) -> None:
     """Add ``fitmedia validate`` to the subparsers ``sub``."""
-    from .cli import _finite, _positive_int
+    from .cli import _finite, _out_dir, _positive_int, _seed
 
     p = sub.add_parser("validate", help="synthetic round trips on Dask; coverage of the "
                                         "credible intervals (docs/validation.md)")
     p.add_argument("--rounds", type=_positive_int, required=True)
     p.add_argument("--media", nargs="+", required=True, metavar="NAME",
                    help="liquids of the Narasimhan 2006 table, used in turn")
-    p.add_argument("--out", required=True)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=_out_dir, required=True)
+    p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--spec", default=None, help="geometry spec (default capture_specs/bulb.yaml)")
     p.add_argument("--ml", type=_finite, nargs="+", default=None,
                    help="ml per image of every round (default: drawn in 8-240 per round)")
@@ -518,10 +518,12 @@ def cmd_validate(a) -> int:
 
 def add_fit_many_parser(sub) -> None:
     """Add ``fitmedia fit-many`` to the subparsers ``sub``."""
+    from .cli import _out_dir, _seed
+
     p = sub.add_parser("fit-many", help="fit many captures on Dask; summary.json")
     p.add_argument("specs", nargs="+", metavar="SPEC")
-    p.add_argument("--out", required=True)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=_out_dir, required=True)
+    p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--no-mcmc", action="store_true", help="MAP only, no posterior sampling")
     p.add_argument("--no-report", action="store_true")
     _add_runner_args(p)

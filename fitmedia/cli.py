@@ -34,6 +34,32 @@ def _finite(text: str) -> float:
     return v
 
 
+def _positive_finite(text: str) -> float:
+    v = _finite(text)
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
+
+
+def _seed(text: str) -> int:
+    """A random seed: an integer >= 0 (numpy refuses negative seeds, after the output folder
+    was made)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {v}")
+    return v
+
+
+def _out_dir(text: str) -> str:
+    """An output folder: not empty (an empty --out wrote everything into the current folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a folder, got {text!r}")
+    return text
+
+
 def _thickness(text: str) -> float:
     return float("inf") if text.strip().lower() in ("inf", "infinity") else _finite(text)
 
@@ -139,8 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--ml", type=_finite, nargs="+", required=True,
                    help="ml of liquid per image (several: a dilution series)")
     s.add_argument("--tank-ml", type=_finite, default=23000.0, help="water in the tank, ml")
-    s.add_argument("--out", required=True)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", type=_out_dir, required=True)
+    s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--model", choices=["single", "full"], default="single")
     s.add_argument("--spp", type=_positive_int, default=256, help="samples per pixel (full)")
     s.add_argument("--brightness", type=_finite, nargs="+",
@@ -151,15 +177,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("fit", help="fit a capture and write results.json and report.html")
     f.add_argument("spec")
-    f.add_argument("--out", required=True)
+    f.add_argument("--out", type=_out_dir, required=True)
     f.add_argument("--model", choices=["single"], default="single")
-    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--seed", type=_seed, default=0)
     f.add_argument("--no-mcmc", action="store_true", help="MAP only, no posterior sampling")
     f.add_argument("--no-report", action="store_true")
     f.add_argument("--robust", action="store_true", help="Student-t likelihood (outliers)")
     f.add_argument("--background", action="store_true",
                    help="fit an additive background offset per channel (normal prior)")
-    f.add_argument("--n-tau", type=_finite, default=50.0, help="chain length in autocorr. times")
+    f.add_argument("--n-tau", type=_positive_finite, default=50.0,
+                   help="chain length in autocorr. times")
     f.add_argument("--max-steps", type=_positive_int, default=20000)
     f.add_argument("--workers", type=_positive_int, default=None)
     f.add_argument("--resume", action="store_true", help="continue from the chains in --out")
@@ -171,8 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_report)
 
     d = sub.add_parser("demo", help="fit the bundled default capture (synthetic/default)")
-    d.add_argument("--out", default="out/demo")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--out", type=_out_dir, default="out/demo")
+    d.add_argument("--seed", type=_seed, default=0)
     d.add_argument("--quiet", action="store_true")
     d.set_defaults(func=cmd_demo)
 
@@ -186,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     sl.add_argument("--n", type=_finite, required=True)
     sl.add_argument("--mu0", type=_finite, default=1.0)
     sl.add_argument("--spp", type=_positive_int, default=None)
-    sl.add_argument("--seed", type=int, default=0)
+    sl.add_argument("--seed", type=_seed, default=0)
     sl.add_argument("--json", action="store_true")
     sl.set_defaults(func=cmd_slab)
 

@@ -131,3 +131,46 @@ def test_a_spec_beyond_the_memory_limit_is_refused_up_front(monkeypatch):
     monkeypatch.setenv("FITMEDIA_MAX_MEMORY_GB", "-3")
     with pytest.raises(InputError, match="FITMEDIA_MAX_MEMORY_GB: got '-3'"):
         check_memory(huge, "synth")
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["fit", "s.yaml", "--out", "{o}", "--n-tau", "-1"], "--n-tau: expected a positive number"),
+    (["fit", "s.yaml", "--out", "{o}", "--n-tau", "0"], "--n-tau: expected a positive number"),
+    (["synth", "s.yaml", "--medium", "Espresso", "--ml", "8", "--out", "{o}", "--seed", "-1"],
+     "--seed: expected an integer >= 0"),
+    (["synth", "s.yaml", "--medium", "Espresso", "--ml", "8", "--out", ""],
+     "--out: expected a folder"),
+    (["fit-many", "s.yaml", "--out", "{o}", "--seed", "-1"], "--seed: expected an integer >= 0"),
+])
+def test_bad_arguments_are_refused_before_anything_is_made(tmp_path, capsys, argv, words):
+    """Arguments numpy or the sampler would take (n_tau <= 0: a chain that stops at once) or
+    fail on after the output folder was made (seed -1), and an empty --out (everything was
+    written into the current folder): exit 2 from argparse, the option named, nothing made."""
+    from fitmedia.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main([a.replace("{o}", str(tmp_path / "o")) for a in argv])
+    assert exc.value.code == 2 and words in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_report_names_a_missing_row(tmp_path):
+    """A results.json without one channel's g (the report dropped the row silently) is refused
+    naming parameters.g.G; a complete one passes the check (reference: the rows by hand)."""
+    import json
+
+    from fitmedia.errors import InputError
+    from fitmedia.report.html import load_outputs
+
+    params = {q: {c: {"map": 0.5} for c in "RGB"}
+              for q in ("kappa_a", "kappa_s", "kappa_t", "albedo", "g")}
+    del params["g"]["G"]
+    (tmp_path / "results.json").write_text(json.dumps({"channels": list("RGB"),
+                                                       "parameters": params}))
+    with pytest.raises(InputError, match=r"results.json: parameters\.g\.G is missing"):
+        load_outputs(tmp_path)
+    params["g"]["G"] = {"map": 0.5}
+    (tmp_path / "results.json").write_text(json.dumps({"channels": list("RGB"),
+                                                       "parameters": params}))
+    with pytest.raises(InputError, match="samples.npz: file not found"):
+        load_outputs(tmp_path)

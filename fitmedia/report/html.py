@@ -90,7 +90,23 @@ def load_outputs(out_dir: str | Path) -> tuple[dict, dict[str, np.ndarray], dict
         raise InputError(f"{rpath}: not a readable JSON file ({exc})") from exc
     if not isinstance(results, dict) or "parameters" not in results:
         raise InputError(f"{rpath}: expected a fitmedia results object with 'parameters'")
+    _check_rows(results, rpath)
     return results, _load_npz(out / "samples.npz"), _load_npz(out / "fit_images.npz")
+
+
+def _check_rows(results: dict, rpath: Path) -> None:
+    """Every row of the estimates table is there: a list of ``channels`` and, for each, every
+    quantity of :data:`QUANTITIES` with its ``map`` (a missing row was silently left out)."""
+    chans, params = results.get("channels"), results.get("parameters")
+    if not isinstance(chans, list) or not chans or not isinstance(params, dict):
+        raise InputError(f"{rpath}: 'channels' (a list of R, G, B) and 'parameters' are needed")
+    for q in QUANTITIES:
+        for ch in chans:
+            entry = (params.get(q) or {}).get(ch) if isinstance(params.get(q), dict) else None
+            if not isinstance(entry, dict) or "map" not in entry:
+                raise InputError(f"{rpath}: parameters.{q}.{ch}"
+                                 f"{'.map' if isinstance(entry, dict) else ''} is missing; the "
+                                 "report would leave out its row (rerun `fitmedia fit`)")
 
 
 # ---------------------------------------------------------------------------------------------
