@@ -25,9 +25,9 @@ from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 from .errors import InputError
+from .spec import CHANNELS
 from .util import atomic_write_text
 
-CHANNELS = ("R", "G", "B")
 MM_PER_M = 1000.0
 FILES = ("medium_mitsuba.json", "medium_mitsuba.xml", "medium_pbrt.txt")
 

@@ -2,7 +2,8 @@
 
 Each mutant is one exact text replacement in one file (an operator swap, a dropped
 factor, a sign flip, kappa_a for kappa_t...).  The harness copies ``fitmedia/``,
-``tests/`` and ``pyproject.toml`` to a scratch folder (never touching the checkout),
+``tests/`` and ``pyproject.toml`` as committed (HEAD) to a scratch folder (never touching the
+checkout),
 checks that the unmutated copy passes, then applies one mutant at a time, runs its
 tests (``pytest -x``, one process) and restores the file.  A mutant is *killed* when a
 test fails (or the run times out), *survived* when every test passes.  The score and the
@@ -33,12 +34,16 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-FAST = ["tests/test_physics_references.py", "tests/test_fit_objective.py", "tests/test_physics.py",
-        "tests/test_priors.py", "tests/test_nuisance.py",
-        "tests/test_sampler.py::test_optimizer_objective_is_the_sampler_log_probability"]
+# the suite's older tests first, the issue-14 ones last: with ``-x`` the first failing test is
+# recorded, and a mutant first killed by a new test survived the older ones
+FAST = ["tests/test_physics.py", "tests/test_priors.py", "tests/test_nuisance.py",
+        "tests/test_sampler.py::test_optimizer_objective_is_the_sampler_log_probability",
+        "tests/test_forward_inputs.py", "tests/test_physics_references.py",
+        "tests/test_fit_objective.py"]
 SLAB = ["tests/test_slab.py"]
 #: tests written for issue 14; ``--before`` leaves them out (and the slab rows with n != 1, g = 0.9)
-NEW_FILES = ("tests/test_physics_references.py", "tests/test_fit_objective.py")
+NEW_FILES = ("tests/test_physics_references.py", "tests/test_fit_objective.py",
+             "tests/test_forward_inputs.py")
 NEW_SLAB_ROWS = "iad_g09"
 
 # (id, file, text, replacement, what it breaks)
@@ -55,10 +60,12 @@ MUTANTS = [
      "pixel samples at the corner, not the centre"),
     ("G6", "fitmedia/geometry.py", "         - ((np.asarray(y) - camera.cy)",
      "         + ((np.asarray(y) - camera.cy)", "image y axis flipped"),
-    ("M1", "fitmedia/medium.py", "denom = 1.0 + g * g - 2.0 * g * cos_theta",
-     "denom = 1.0 + g * g + 2.0 * g * cos_theta", "HG phase function: g sign flipped"),
-    ("M2", "fitmedia/medium.py", "(4.0 * np.pi * denom * np.sqrt(denom))",
-     "(2.0 * np.pi * denom * np.sqrt(denom))", "HG normalisation 2 pi"),
+    ("M1", "fitmedia/medium.py", "denom = (1.0 - g) ** 2 + 4.0 * g * sin2_half",
+     "denom = (1.0 + g) ** 2 - 4.0 * g * sin2_half", "HG phase function: g sign flipped"),
+    ("M2", "fitmedia/medium.py", "(1.0 - g * g) / (4.0 * np.pi) / (denom",
+     "(1.0 - g * g) / (2.0 * np.pi) / (denom", "HG normalisation 2 pi"),
+    ("M5", "fitmedia/medium.py", "0.5 * (1.0 - np.asarray(cos_theta, dtype=float))",
+     "0.5 * (1.0 + np.asarray(cos_theta, dtype=float))", "hg_phase: scattering angle reversed"),
     ("M3", "fitmedia/medium.py", "return self.kappa_a + self.kappa_s", "return self.kappa_s",
      "Medium.kappa_t without kappa_a"),
     ("M4", "fitmedia/medium.py", "self.kappa_s * concentration, self.g",
@@ -67,8 +74,8 @@ MUTANTS = [
      "br[k] * np.exp(-ka[k] * self._s_hit)", "direct bulb attenuated by kappa_a, not kappa_t"),
     ("S2", "fitmedia/forward/single.py", "        kt = ka + ks\n", "        kt = ks + 0 * ka\n",
      "extinction without absorption"),
-    ("S3", "fitmedia/forward/single.py", "(1 - gk * gk) / (4 * np.pi) * np.einsum",
-     "(1 - gk) / (4 * np.pi) * np.einsum", "HG numerator 1 - g in the line integral"),
+    ("S3", "fitmedia/forward/single.py", "hg_phase_half_angle(1.0 - sin2 if upper else sin2, gk)",
+     "hg_phase_half_angle(sin2, gk)", "line integral's HG: wrong angle on the upper half"),
     ("S4", "fitmedia/forward/single.py", "np.divide(2.0, cos_alpha, out=cos_alpha)",
      "np.divide(1.0, cos_alpha, out=cos_alpha)", "bulb solid angle halved"),
     ("S5", "fitmedia/forward/single.py",
@@ -110,15 +117,24 @@ def _tests_for(path: str) -> list[str]:
     return SLAB if path.endswith("slab.py") else FAST
 
 
-def _copy_tree(dest: Path) -> None:
-    for name in ("fitmedia", "tests"):
+def _copy_tree(dest: Path, worktree: bool) -> None:
+    """The committed tree (HEAD: a consistent state while others edit the checkout), or with
+    ``worktree`` the files as they are now."""
+    names = ["fitmedia", "tests", "pyproject.toml"]
+    if not worktree:
+        archive = subprocess.run(["git", "archive", "--format=tar", "HEAD", *names], cwd=ROOT,
+                                 capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+        return
+    for name in names[:2]:
         shutil.copytree(ROOT / name, dest / name,
                         ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info"))
     shutil.copy2(ROOT / "pyproject.toml", dest / "pyproject.toml")
 
 
-def _run(tree: Path, tests: list[str], before: bool, timeout: float) -> tuple[str, float]:
-    """pytest on ``tests`` in ``tree``: ('pass' | 'fail' | 'timeout', seconds)."""
+def _run(tree: Path, tests: list[str], before: bool, timeout: float
+         ) -> tuple[str, float, str | None]:
+    """pytest on ``tests`` in ``tree``: ('pass' | 'fail' | 'timeout', seconds, first failure)."""
     if before:
         tests = [t for t in tests if t.split("::")[0] not in NEW_FILES]
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:xdist", "-p", "no:cacheprovider",
@@ -128,20 +144,23 @@ def _run(tree: Path, tests: list[str], before: bool, timeout: float) -> tuple[st
     env = {**os.environ, "PYTHONPATH": str(tree), "PYTHONDONTWRITEBYTECODE": "1"}
     t0 = time.perf_counter()
     try:
-        rc = subprocess.run(cmd, cwd=tree, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, timeout=timeout).returncode
+        res = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True,
+                             timeout=timeout)
     except subprocess.TimeoutExpired:
-        return "timeout", time.perf_counter() - t0
-    return ("pass" if rc == 0 else "fail"), time.perf_counter() - t0
+        return "timeout", time.perf_counter() - t0, None
+    failed = [ln.split()[1] for ln in res.stdout.splitlines() if ln.startswith(("FAILED", "ERROR"))]
+    return (("pass" if res.returncode == 0 else "fail"), time.perf_counter() - t0,
+            failed[0] if failed else None)
 
 
-def run(ids: list[str] | None, before: bool, timeout: float, out: Path | None) -> int:
+def run(ids: list[str] | None, before: bool, timeout: float, out: Path | None,
+        worktree: bool = False) -> int:
     chosen = [m for m in MUTANTS if ids is None or m[0] in ids]
     with tempfile.TemporaryDirectory(prefix="fitmedia-mutation-") as tmp:
         tree = Path(tmp)
-        _copy_tree(tree)
+        _copy_tree(tree, worktree)
         for files in sorted({tuple(_tests_for(m[1])) for m in chosen}):
-            status, secs = _run(tree, list(files), before, timeout)
+            status, secs, _ = _run(tree, list(files), before, timeout)
             print(f"baseline {' '.join(files)}: {status} ({secs:.0f} s)", flush=True)
             if status != "pass":
                 print("the unmutated tree fails its tests: fix that first", file=sys.stderr)
@@ -156,13 +175,14 @@ def run(ids: list[str] | None, before: bool, timeout: float, out: Path | None) -
                 continue
             target.write_text(text.replace(old, new))
             try:
-                status, secs = _run(tree, _tests_for(path), before, timeout)
+                status, secs, killer = _run(tree, _tests_for(path), before, timeout)
             finally:
                 target.write_text(text)
             state = "survived" if status == "pass" else "killed"
             rows.append({"id": mid, "file": path, "status": state, "seconds": round(secs, 1),
-                         "what": what})
-            print(f"{mid:3} {state:8} {secs:6.0f} s  {path}: {what}", flush=True)
+                         "what": what, "killed_by": killer or (status if state == "killed" else None)})
+            print(f"{mid:3} {state:8} {secs:6.0f} s  {path}: {what}"
+                  + (f"  <- {rows[-1]['killed_by']}" if state == "killed" else ""), flush=True)
     scored = [r for r in rows if r["status"] != "stale"]
     killed = sum(r["status"] == "killed" for r in scored)
     print(f"score: {killed} of {len(scored)} killed"
@@ -179,13 +199,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--before", action="store_true", help="leave out the issue-14 tests")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per test run")
     ap.add_argument("--json", type=Path, help="write the results here")
+    ap.add_argument("--worktree", action="store_true",
+                    help="mutate a copy of the working tree (default: of the last commit, HEAD)")
     ap.add_argument("--list", action="store_true", help="list the mutants and exit")
     a = ap.parse_args(argv)
     if a.list:
         for mid, path, _, _, what in MUTANTS:
             print(f"{mid:3} {path}: {what}")
         return 0
-    return run(a.only, a.before, a.timeout, a.json)
+    return run(a.only, a.before, a.timeout, a.json, a.worktree)
 
 
 if __name__ == "__main__":
