@@ -3,8 +3,6 @@ variances of brackets, darks and binning, and noise estimation per image."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import tifffile
@@ -111,3 +109,52 @@ def test_noise_estimate_recovers_or_refuses(tmp_path, tank_image, seed, case, ga
     np.testing.assert_allclose(est.a, gain, rtol=0.10)
     np.testing.assert_allclose(est.b, read_var, rtol=0.10)
     assert est.source == "estimated from this image"
+
+
+def _radiance(h: int = 60, w: int = 80) -> np.ndarray:
+    """A glow around a bright disc (a bulb), DN per second per channel: from ~30 DN/s at the
+    corners to 4e6 DN/s in the disc, so the long frames saturate and the short ones read
+    little above their read noise."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    r = np.hypot(yy - h / 2, xx - w / 2)
+    glow = 3e5 * np.exp(-r / 6.0) + 30.0
+    return np.where(r < 4, 4e6, glow)[..., None] * np.array([1.0, 0.6, 0.3])
+
+
+def test_bracket_with_dark_chi2_at_truth(tmp_path, rng):
+    """A 3-frame 16-bit bracket (1, 0.1, 0.01 s) with one shared dark frame, simulated here
+    with Poisson-Gaussian noise (a = 2 DN per electron, read variance 25 DN^2, pedestal
+    500 DN, clipped at 65535): chi2 per pixel at the true radiance through the likelihood
+    is 1 within 4 sigma (sqrt(2 / n)) with the per-pixel variances, while one noise level
+    for every pixel (the longest frame's, as before) gives chi2 > 10 per pixel on the pixels
+    known only from the shortest frame."""
+    a, b, pedestal, exposures = 2.0, 25.0, 500.0, (1.0, 0.1, 0.01)
+    radiance = _radiance()
+    shape = radiance.shape[:2]
+    dark = pedestal + rng.normal(0.0, np.sqrt(b), radiance.shape)
+    paths = []
+    for k, t in enumerate(exposures):
+        electrons = rng.poisson(radiance * t / a)
+        raw = pedestal + a * electrons + rng.normal(0.0, np.sqrt(b), radiance.shape)
+        paths.append(tmp_path / f"f{k}.tif")
+        tifffile.imwrite(paths[-1], np.clip(np.round(raw), 0, 65535).astype(np.uint16),
+                         photometric="rgb")
+    tifffile.imwrite(tmp_path / "dark.tif", np.round(dark).astype(np.uint16), photometric="rgb")
+    entry = ImageEntry(paths=tuple(paths), exposures=exposures, darks=(tmp_path / "dark.tif",),
+                       response="linear")
+    img = load_entry(entry, expected_shape=shape)
+    assert img.n_saturated == 0 and img.valid.all()
+    assert 0.01 < np.mean(img.exposure < 1.0) < 0.5  # the long frame saturates near the disc
+    assert np.mean(img.exposure < 0.1) > 0.005        # and the middle one in the disc
+    gain_map, read_map = img.variance_maps(a, b)
+    space = ParameterSpace()
+    for ci in range(3):
+        obs = [Observation(FixedModel(radiance[..., ci]), img.data[..., ci], img.valid[..., ci],
+                           1.0, gain_map[..., ci], read_map[..., ci])]
+        chi2, n = ChannelProblem(obs, space, 1.0, (np.nan, np.nan)).chi2(_u(space))
+        assert abs(chi2 / n - 1.0) < 4 * np.sqrt(2.0 / n), (ci, chi2 / n)
+        short = img.exposure[..., ci] < 0.05  # known from the 0.01 s frame only
+        flat = ChannelProblem([Observation(FixedModel(radiance[..., ci]), img.data[..., ci],
+                                           short, 1.0)], space, 1.0, (a / 1.0, b))
+        chi2_flat, n_short = flat.chi2(_u(space))
+        assert n_short > 10 and chi2_flat / n_short > 10, (ci, chi2_flat / n_short)

@@ -385,7 +385,8 @@ class LoadedImage:
         Summed exposure (s) of the frames merged into each pixel (all frames where
         every one is saturated).
     reads : ndarray of shape (H, W, 3)
-        Number of reads in each pixel: frames merged plus dark frames subtracted.
+        Read-noise variances summed in each pixel, in units of one read: the frames merged
+        plus their dark frames (K^2 for one dark shared by the K frames merged).
     samples : ndarray of shape (3,)
         Stored samples averaged per pixel and channel (binned Bayer: 1, 2, 1).
     quant_var : float
@@ -441,13 +442,13 @@ def _frame(path: Path, shape: tuple[int, int], what: str) -> Frame:
     return frame
 
 
-def _saturated(frame: Frame, saturation: float | None) -> np.ndarray | bool:
+def _saturated(frame: Frame, saturation: float | None) -> np.ndarray:
     """Where the frame is saturated: its stored (RAW: raw sensor) values at or above the
     spec's ``saturation``, else at or above ``SATURATION_FRACTION`` of the file's level."""
     if saturation is not None:
         return frame.peak >= saturation
     if frame.level is None:
-        return False
+        return np.zeros(frame.peak.shape, bool)
     return frame.peak >= SATURATION_FRACTION * frame.level
 
 
@@ -462,7 +463,9 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     RAW white level; float files have none).  The result is the exposure-weighted mean of
     ``s_k / t_k`` over unsaturated frames, ``sum(s_k) / sum(t_k)``: longer
     exposures, with better SNR, count more.  Where every frame is saturated
-    the value is the same sum over all frames, marked invalid.
+    the value is the same sum over all frames, marked invalid.  The per-pixel
+    noise model follows from the frames merged into each pixel
+    (:meth:`LoadedImage.variance_maps`).
 
     Parameters
     ----------
@@ -483,8 +486,9 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     ------
     ImageError
         A bad file, a frame or dark of the wrong size, a dark of another pixel
-        type, an 8- or 16-bit file without ``response`` (:func:`linearise`), or more than ``MAX_UNUSABLE_FRACTION`` of the pixels saturated or
-        masked in the requested channels.
+        type, an 8- or 16-bit file without ``response`` (:func:`linearise`), or more
+        than ``MAX_UNUSABLE_FRACTION`` of the pixels saturated or masked in the
+        requested channels.
     """
     chans = tuple(channels)
     if not chans or any(c not in (0, 1, 2) for c in chans):
@@ -500,7 +504,8 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     data, exposure, reads, samples, quant_var = _merge(entry, shape)
     usable = exposure > 0
     exposure = np.where(usable, exposure, sum(exps))
-    reads = np.where(usable, reads, len(paths) * (1 + bool(darks)))
+    k = len(paths)
+    reads = np.where(usable, reads, k + (k * k if len(darks) == 1 and k > 1 else k) * bool(darks))
     mask_ok = np.ones(shape, bool) if entry.mask is None else _read_mask(entry.mask, shape)
     valid = usable & mask_ok[..., None]
     saturated = ~usable[..., chans].all(axis=2)
@@ -529,7 +534,7 @@ def _merge(entry: ImageEntry, shape: tuple[int, int]
     samples, qvar = None, 0.0
     for k, (path, t) in enumerate(zip(paths, exps)):
         frame = linearise(_frame(path, shape, "image"), entry.response, path)
-        signal, n = frame.data, 1
+        signal = frame.data
         if darks:
             dpath = darks[k if len(darks) > 1 else 0]
             if dpath not in dark_cache:
@@ -540,7 +545,7 @@ def _merge(entry: ImageEntry, shape: tuple[int, int]
                 raise ImageError(f"{dpath}: dark frame has saturation level {dark.level} (pixel "
                                  f"type) but the image {path} has {frame.level}; they must "
                                  "be of the same type")
-            signal, n = frame.data - dark.data, 2
+            signal = frame.data - dark.data
             qvar = max(qvar, dark.quantum ** 2 / 12.0)
         if samples is not None and not np.array_equal(samples, frame.samples):
             raise ImageError(f"{path}: frames of one bracket must be of the same file type")
@@ -548,8 +553,11 @@ def _merge(entry: ImageEntry, shape: tuple[int, int]
         ok = ~_saturated(frame, entry.saturation)
         num += np.where(ok, signal, 0.0)
         den += np.where(ok, t, 0.0)
-        nread += np.where(ok, n, 0)
+        nread += ok
         all_num += signal
     usable = den > 0
     data = np.where(usable, num / np.where(usable, den, 1.0), all_num / sum(exps))
-    return data, den, nread, samples, qvar
+    # the darks' reads: one per frame merged, or one dark shared by the K frames merged,
+    # whose noise enters their sum K times over: K^2 reads' worth of variance
+    dark_reads = (nread ** 2 if len(darks) == 1 and len(paths) > 1 else nread) if darks else 0
+    return data, den, nread + dark_reads, samples, qvar
