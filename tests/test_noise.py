@@ -158,3 +158,81 @@ def test_bracket_with_dark_chi2_at_truth(tmp_path, rng):
                                            short, 1.0)], space, 1.0, (a / 1.0, b))
         chi2_flat, n_short = flat.chi2(_u(space))
         assert n_short > 10 and chi2_flat / n_short > 10, (ci, chi2_flat / n_short)
+
+
+def test_noise_from_a_dark_frame(tmp_path, tank_image, rng):
+    """With a dark frame the read variance is the dark frame's own noise variance and only
+    the gain is fitted: both within 10 % of the values the frames were simulated with
+    (photon-limited case, float files, the dark subtracted)."""
+    from fitmedia.images import write_float_tiff
+    from fitmedia.images.noise import estimate_sensor_noise
+    from fitmedia.synth import CameraNoise
+
+    gain, read_var = 1e-6, 9e-12
+    write_float_tiff(tmp_path / "a.tiff", CameraNoise(gain, read_var).apply(tank_image, rng))
+    write_float_tiff(tmp_path / "d.tiff", rng.normal(0.0, np.sqrt(read_var), tank_image.shape))
+    entry = ImageEntry(paths=(tmp_path / "a.tiff",), exposures=(2.0,),
+                       darks=(tmp_path / "d.tiff",))
+    img = load_entry(entry, expected_shape=tank_image.shape[:2])
+    est = estimate_sensor_noise(img, entry, (0, 1, 2), "images[0]")
+    np.testing.assert_allclose(est.a, gain, rtol=0.10)
+    np.testing.assert_allclose(est.b, read_var, rtol=0.10)
+    assert est.source == "estimated from this image and its dark frame d.tiff"
+    gain_map, read_map = img.variance_maps(est.a, est.b)
+    # image and dark: two reads, over t^2 = 4
+    np.testing.assert_allclose(read_map, np.broadcast_to(2 * est.b / 4.0, read_map.shape))
+
+
+@pytest.fixture(scope="module")
+def small_capture(tmp_path_factory):
+    """A small synthetic capture (60 x 45, float TIFFs) made by `fitmedia synth`."""
+    import yaml
+    from conftest import geometry_dict
+
+    from fitmedia.cli import main
+
+    d = tmp_path_factory.mktemp("cap")
+    (d / "geom.yaml").write_text(yaml.safe_dump(geometry_dict(width=60, height=45)))
+    assert main(["synth", str(d / "geom.yaml"), "--medium", "Espresso", "--ml", "8", "--out",
+                 str(d / "c"), "--seed", "3"]) == 0
+    return d / "c"
+
+
+def _fit_exit(capture, tmp_path, capsys, mutate) -> tuple[int, str]:
+    import yaml
+
+    from fitmedia.cli import main
+
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    for entry in data["images"] + [data["calibration"]["clear_water"]]:
+        entry["path"] = str(capture / entry["path"])
+    mutate(data)
+    (tmp_path / "spec.yaml").write_text(yaml.safe_dump(data))
+    code = main(["fit", str(tmp_path / "spec.yaml"), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    return code, err
+
+
+def test_cli_refuses_undeclared_16bit_tiff(small_capture, tmp_path, capsys):
+    """The capture's image as a 16-bit TIFF without `response`: exit 2, one line naming the
+    file and the fix; nothing written."""
+    from fitmedia.images import read_image
+
+    img, _ = read_image(small_capture / "images" / "medium_00_8ml.tiff")
+    tifffile.imwrite(tmp_path / "m16.tif", np.clip(img / img.max() * 60000, 0, 65535)
+                     .astype(np.uint16), photometric="rgb")
+    code, err = _fit_exit(small_capture, tmp_path, capsys,
+                          lambda d: d["images"][0].update(path=str(tmp_path / "m16.tif")))
+    assert code == 2 and "m16.tif" in err and "'response: srgb'" in err
+    assert "'response: linear'" in err and not (tmp_path / "out").exists()
+
+
+def test_cli_refuses_a_bracket_noise_block_without_exposure(small_capture, tmp_path, capsys):
+    """A bracket of different exposures with a `noise` block but no noise.exposure_s: exit 2
+    naming noise.exposure_s (the block's exposure is ambiguous)."""
+    def mutate(d):
+        p = d["images"][0]["path"]
+        d["images"][0].update(path=[p, p], exposure_s=[1.0, 0.5])
+    code, err = _fit_exit(small_capture, tmp_path, capsys, mutate)
+    assert code == 2 and "noise.exposure_s" in err and "images[0]" in err

@@ -55,7 +55,7 @@ def estimate_noise(data: np.ndarray, valid: np.ndarray, *,
 
 def fit_noise(data: np.ndarray, valid: np.ndarray, *,
               rng: np.random.Generator | int | None = None, n_bins: int = 30,
-              max_samples: int = 500_000, read_var: float | None = None) -> "NoiseFit":
+              max_samples: int = 500_000, dark: tuple[float, int] | None = None) -> "NoiseFit":
     """Fit ``variance = gain * value + read_var`` to the noise of one image.
 
     Assumes the signal is smooth, i.e. locally quadratic over 3x3 pixels, as the
@@ -90,8 +90,9 @@ def fit_noise(data: np.ndarray, valid: np.ndarray, *,
         Number of signal-level bins.
     max_samples : int
         Largest number of pixel samples used.
-    read_var : float, optional
-        A known read variance (from a dark frame): only the gain is fitted.
+    dark : (float, int), optional
+        A read variance measured on a dark frame (in the units of ``data`` squared) and
+        its number of samples: one more bin at level 0, weighed by its sampling error.
 
     Returns
     -------
@@ -106,18 +107,18 @@ def fit_noise(data: np.ndarray, valid: np.ndarray, *,
         channel pairs) whose pixel and 8 neighbours are valid and finite.
     """
     r, m = _residuals(data, valid, rng, max_samples)
-    return _fit_bins(r, m, n_bins, read_var)
+    return _fit_bins(r, m, n_bins, dark)
 
 
 def read_variance(data: np.ndarray, valid: np.ndarray, *,
-                  rng: np.random.Generator | int | None = None) -> float:
+                  rng: np.random.Generator | int | None = None) -> tuple[float, int]:
     """The noise variance of a flat image (a dark frame): the clipped variance of the
     residuals of :func:`fit_noise` over 36, which remove a smooth offset but not
     pixel-to-pixel fixed pattern (it counts as noise here)."""
     r, _m = _residuals(data, valid, rng, 500_000)
     med = np.median(r)
     r = r[np.abs(r - med) <= CLIP_SIGMAS * _MAD_TO_SIGMA * np.median(np.abs(r - med))]
-    return float(np.var(r)) / _CLIP_VAR_KEPT / _RESIDUAL_GAIN
+    return float(np.var(r)) / _CLIP_VAR_KEPT / _RESIDUAL_GAIN, int(r.size)
 
 
 def _residuals(data: np.ndarray, valid: np.ndarray, rng, max_samples: int
@@ -172,8 +173,10 @@ class NoiseFit:
     level_hi: float
 
 
-def _fit_bins(r: np.ndarray, m: np.ndarray, n_bins: int, read_var: float | None) -> NoiseFit:
-    """Bin residuals ``r`` by level ``m`` and fit the linear variance model to the bins.
+def _fit_bins(r: np.ndarray, m: np.ndarray, n_bins: int,
+              dark: tuple[float, int] | None) -> NoiseFit:
+    """Bin residuals ``r`` by level ``m`` and fit the linear variance model to the bins;
+    ``dark`` (a read variance and its number of samples) is one more bin at level 0.
 
     Bins that disagree with the fit by more than ``OUTLIER_Z`` of their sampling errors
     (levels blurred across the tank's edges, or a top bin spanning the bulb's edge) are
@@ -191,18 +194,20 @@ def _fit_bins(r: np.ndarray, m: np.ndarray, n_bins: int, read_var: float | None)
         means.append(m[idx].mean())
         variances.append(float(np.var(rb)) / _CLIP_VAR_KEPT / _RESIDUAL_GAIN)
         counts.append(idx.size)
+    if dark is not None:
+        means.append(0.0)
+        variances.append(dark[0])
+        counts.append(dark[1])
     if len(means) < 3:
         raise InputError("estimate_noise: the image's levels are too spread out to bin (fewer "
                          "than 3 bins of similar level)")
     y, rel = np.asarray(variances), np.sqrt(_CLIPPED_VAR_FACTOR / np.asarray(counts))
-    if read_var is not None:  # read variance known (a dark frame): fit the gain alone
-        y = y - read_var
-    a = np.column_stack([means, np.ones(len(means))])[:, :1 if read_var is not None else 2]
+    a = np.column_stack([means, np.ones(len(means))])
     tiny = max(float(np.abs(y).max()), 1e-300) * 1e-6
     keep = np.ones(len(y), bool)
     while True:
-        coef, sd = _weighted_fit(a[keep], y[keep], rel[keep], read_var or 0.0, tiny)
-        z = np.abs(y - a @ coef) / np.maximum(a @ coef + (read_var or 0.0), tiny) / rel
+        coef, sd = _weighted_fit(a[keep], y[keep], rel[keep], tiny)
+        z = np.abs(y - a @ coef) / np.maximum(a @ coef, tiny) / rel
         z[~keep] = 0.0
         if z.max() <= OUTLIER_Z or np.count_nonzero(~keep) >= len(y) // 3:
             break
@@ -212,12 +217,12 @@ def _fit_bins(r: np.ndarray, m: np.ndarray, n_bins: int, read_var: float | None)
     chi2 = float(np.sum(((y[keep] - a[keep] @ coef) / sd) ** 2)) / max(
         np.count_nonzero(keep) - a.shape[1], 1)
     se = np.sqrt(np.diag(cov) * max(chi2, 1.0))
-    rv, rse = (float(read_var), 0.0) if read_var is not None else (float(coef[1]), float(se[1]))
     means = np.asarray(means)[keep]
-    return NoiseFit(float(coef[0]), rv, float(se[0]), rse, float(means[0]), float(means[-1]))
+    return NoiseFit(float(coef[0]), float(coef[1]), float(se[0]), float(se[1]),
+                    float(means.min()), float(means.max()))
 
 
-def _weighted_fit(a: np.ndarray, y: np.ndarray, rel: np.ndarray, offset: float, tiny: float
+def _weighted_fit(a: np.ndarray, y: np.ndarray, rel: np.ndarray, tiny: float
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Non-negative least squares of ``y`` on ``a`` weighted by the inverse model variance
     times the bins' relative errors ``rel`` (two passes); the coefficients and the bins'
@@ -225,7 +230,7 @@ def _weighted_fit(a: np.ndarray, y: np.ndarray, rel: np.ndarray, offset: float, 
     weight = 1.0 / (np.maximum(np.abs(y), tiny) * rel)
     for _ in range(2):
         coef, _res = nnls(a * weight[:, None], y * weight)
-        model = np.maximum(a @ coef + offset, tiny)
+        model = np.maximum(a @ coef, tiny)
         weight = 1.0 / (model * rel)
     return coef, model * rel
 
@@ -276,7 +281,7 @@ def estimate_sensor_noise(img: LoadedImage, entry: ImageEntry, channels: tuple[i
     The fit (:func:`fit_noise`) uses the pixels merged from the most common set of frames
     (same summed exposure T and reads N), where the variance of the normalised image is
     ``a / (n T) * value + N b / (n T^2)`` (``LoadedImage.variance_maps``).  With a dark
-    frame, b is its own noise variance (:func:`read_variance`) and only a is fitted.
+    frame, its own noise variance (:func:`read_variance`) is one more bin at level 0.
 
     Raises
     ------
@@ -297,25 +302,25 @@ def estimate_sensor_noise(img: LoadedImage, entry: ImageEntry, channels: tuple[i
                              "from; give a `noise` block (gain, read_var)")
         t, nr = pairs[:, int(np.argmax(counts))]
         n = float(img.samples[ci])
-        known = None
+        known = None  # the dark frame's read variance in the image's units, and its samples
         if dark is not None:
-            b_dark = read_variance(dark[..., ci], np.ones(dark.shape[:2], bool), rng=rng) * n
-            known = nr * max(b_dark, img.quant_var) / (n * t * t)
+            b_dark, n_dark = read_variance(dark[..., ci], np.ones(dark.shape[:2], bool), rng=rng)
+            known = (nr * max(b_dark * n, img.quant_var) / (n * t * t), n_dark)
         try:
             fit = fit_noise(img.data[..., ci], v & (t_map == t) & (n_map == nr), rng=rng,
-                            read_var=known)
+                            dark=known)
         except InputError as exc:
             raise InputError(f"{where}: the noise cannot be estimated in channel {ch} ({exc}); "
                              "give a `noise` block (gain, read_var) or a dark frame") from None
         top = float(np.max(img.data[..., ci][v]))  # the brightest pixel the fit will weigh
-        _check_support(fit, known is None, where, ch, max(top, fit.level_hi))
+        _check_support(fit, where, ch, max(top, fit.level_hi))
         a[ci], b[ci] = fit.gain * n * t, fit.read_var * n * t * t / nr
-    src = "estimated from this image" if dark is None else \
-        f"read variance from the dark frame {entry.darks[0].name}, gain from this image"
+    src = "estimated from this image" + ("" if dark is None else
+                                         f" and its dark frame {entry.darks[0].name}")
     return SensorNoise(a, b, src)
 
 
-def _check_support(fit: NoiseFit, read_fitted: bool, where: str, ch: str, top: float) -> None:
+def _check_support(fit: NoiseFit, where: str, ch: str, top: float) -> None:
     """Refuse a fit whose parameters that matter, at any level from the fit's lowest to the
     image's brightest ``top`` (the bulb: levels the bins may not reach), are not determined
     well enough."""
@@ -323,9 +328,8 @@ def _check_support(fit: NoiseFit, read_fitted: bool, where: str, ch: str, top: f
     var_lo = fit.gain * max(fit.level_lo, 0.0) + fit.read_var
     checks = [("gain", fit.gain, fit.gain_se,
                (fit.gain + 2 * fit.gain_se) * max(top, 0.0) >= NEEDED_SHARE * var_hi)]
-    if read_fitted:
-        checks.append(("read variance", fit.read_var, fit.read_se,
-                       fit.read_var + 2 * fit.read_se >= NEEDED_SHARE * var_lo))
+    checks.append(("read variance", fit.read_var, fit.read_se,
+                   fit.read_var + 2 * fit.read_se >= NEEDED_SHARE * var_lo))
     for name, val, se, needed in checks:
         if needed and not se <= NOISE_REL_SE * val:
             rel = f"{100 * se / val:.0f} %" if val > 0 else "all of it"
