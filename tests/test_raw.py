@@ -152,3 +152,45 @@ def test_raw_of_wrong_size_says_binned(tmp_path, rng):
     path = write_bayer_dng(tmp_path / "a.dng", _sensor(rng))
     with pytest.raises(ImageError, match=r"a\.dng: image is 16x12 pixels \(a RAW file's 2x2"):
         load_entry(_entry(path), expected_shape=(H, W))
+
+
+def test_binned_bayer_chi2_at_truth(tmp_path, rng):
+    """Photosites simulated with Poisson-Gaussian noise (2 DN per electron, read variance
+    16 DN^2, black 512 DN) from a known radiance, written as a Bayer DNG: through fitmedia's
+    binning and per-pixel variances (G the mean of two sites: half the variance) chi2 per
+    pixel at the true radiance is 1 within 4 sigma in R, G and B; treating G like a single
+    site (its variance doubled) moves G's chi2 to about 0.5."""
+    from fitmedia.inference.likelihood import ChannelProblem, Observation
+    from fitmedia.inference.params import ChannelParams, ParameterSpace
+
+    a, b, black, h, w = 2.0, 16.0, 512, 60, 80
+    yy, xx = np.mgrid[0:h, 0:w]
+    radiance = (8000.0 * np.exp(-np.hypot(yy - h / 2, xx - w / 2) / 10.0) + 20.0)[..., None] \
+        * np.array([1.0, 0.7, 0.4])  # DN per second per site, exposure 1 s
+    site = np.empty((2 * h, 2 * w))
+    for (i, j), ch in zip(((0, 0), (0, 1), (1, 0), (1, 1)), (0, 1, 1, 2)):
+        mean = radiance[..., ch]
+        site[i::2, j::2] = black + a * rng.poisson(mean / a) + rng.normal(0, np.sqrt(b), mean.shape)
+    path = write_bayer_dng(tmp_path / "c.dng", np.clip(np.round(site), 0, WHITE),
+                           black=(black,) * 4)
+    img = load_entry(_entry(path), expected_shape=(h, w))
+    gain_map, read_map = img.variance_maps(a, b)
+    space = ParameterSpace()
+    u = space.to_vector(ChannelParams(1.0, 0.5, 0.5))
+
+    class Fixed:
+        def __init__(self, image):
+            self.image, self.shape, self.support = image, image.shape, np.ones(image.shape, bool)
+
+        def render(self, *args):
+            return self.image[..., None]
+
+    for ci in range(3):
+        obs = [Observation(Fixed(radiance[..., ci]), img.data[..., ci], img.valid[..., ci], 1.0,
+                           gain_map[..., ci], read_map[..., ci])]
+        chi2, n = ChannelProblem(obs, space, 1.0, (np.nan, np.nan)).chi2(u)
+        assert n == h * w and abs(chi2 / n - 1) < 4 * np.sqrt(2 / n), (ci, chi2 / n)
+    single = [Observation(Fixed(radiance[..., 1]), img.data[..., 1], img.valid[..., 1], 1.0,
+                          2 * gain_map[..., 1], 2 * read_map[..., 1])]
+    chi2, n = ChannelProblem(single, space, 1.0, (np.nan, np.nan)).chi2(u)
+    assert abs(chi2 / n - 0.5) < 4 * np.sqrt(2 / n) / 2
