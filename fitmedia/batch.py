@@ -203,7 +203,8 @@ def _run_round(task: RoundTask) -> dict:
     except InputError as exc:
         return {**record, "status": "failed", "error": str(exc)}
     record.update(status="done", wall_time_s=time.perf_counter() - t0,
-                  scores=[asdict(s) for s in scores])
+                  scores=[asdict(s) for s in scores],
+                  trust=_trust_summary(_read_json(out / "fit" / "results.json")))
     write_json(out / "round.json", record)
     return record
 
@@ -389,7 +390,14 @@ def _summary_record(task: FitTask, results: dict, status: str) -> dict:
     return {"spec": task.spec, "name": task.name, "out": task.out, "status": status,
             "statistic": key, "units": "1/mm (kappa), undiluted", "estimates": est,
             "converged": results.get("diagnostics", {}).get("converged"),
-            "wall_time_s": results.get("wall_time_s")}
+            "trust": _trust_summary(results), "wall_time_s": results.get("wall_time_s")}
+
+
+def _trust_summary(results: dict | None) -> dict | None:
+    """The misfit guard's verdict of a fit's results.json (``ok``, ``reasons``, ``notes``);
+    None for a results.json without one."""
+    t = (results or {}).get("trust")
+    return {k: t.get(k) for k in ("ok", "reasons", "notes")} if isinstance(t, dict) else None
 
 
 def _run_fit(task: FitTask) -> dict:

@@ -101,15 +101,13 @@ def cmd_fit(a) -> int:
     res = fit(a.spec, a.out, opts, report=not a.no_report)
     out = Path(a.out)
     print(f"wrote {out / 'results.json'}" + ("" if a.no_report else f" and {out / 'report.html'}"))
-    for ch in res["channels"]:
-        p = res["parameters"]
-        key = "median" if "median" in p["kappa_s"][ch] else "map"
-        print(f"  {ch}: kappa_a={p['kappa_a'][ch][key]:.4g} kappa_s={p['kappa_s'][ch][key]:.4g} "
-              f"g={p['g'][ch][key]:.3f} (1/mm, undiluted, {key})")
+    from .trust import print_values, print_verdict
+
+    print_values(res)
     if "converged" in res["diagnostics"] and not res["diagnostics"]["converged"]:
         print("warning: the sampler did not converge; see diagnostics in results.json",
               file=sys.stderr)
-    return 0
+    return print_verdict(res)
 
 
 def cmd_report(a) -> int:

@@ -4,12 +4,20 @@ run through the real entry point."""
 
 from __future__ import annotations
 
+import importlib.util
+import sys
+
 import numpy as np
 import pytest
 
 from fitmedia.errors import ImageError
 from fitmedia.images import LoadedImage, checks
 from conftest import ROOT
+
+_corpus_spec = importlib.util.spec_from_file_location(
+    "make_corpus", ROOT / "tests" / "bad_inputs" / "make_corpus.py")
+corpus = sys.modules.setdefault("make_corpus", importlib.util.module_from_spec(_corpus_spec))
+_corpus_spec.loader.exec_module(corpus)  # registered first: its dataclasses look it up
 
 READ_VAR = 1e-9  # the synthetic camera's (fitmedia.synth.DEFAULT_READ_VAR), sd 3.2e-5
 
@@ -174,3 +182,23 @@ def test_report_names_a_missing_row(tmp_path):
                                                        "parameters": params}))
     with pytest.raises(InputError, match="samples.npz: file not found"):
         load_outputs(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def corpus_base(tmp_path_factory):
+    """The corpus's shared 16 x 12 capture (tests/bad_inputs/make_corpus.py make_base)."""
+    root = tmp_path_factory.mktemp("corpus")
+    return root, corpus.make_base(root)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", corpus.cases(), ids=lambda c: c.name)
+def test_bad_input_corpus(corpus_base, case):
+    """Each case of the bad-input corpus through the real entry point (python -m fitmedia.cli
+    in a subprocess): its exit code, the words of its one-line message, no traceback, an
+    answer within the case's timeout (10 s: no hang), and nothing left in its --out folder.
+    The reference is the case table itself (make_corpus.py), written from issue 17."""
+    root, base = corpus_base
+    d = corpus.build_case(case, root, base)
+    res, _ = corpus.run_case(case, d, base)
+    assert corpus.problems(case, res, d) == [], res.stderr

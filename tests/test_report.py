@@ -192,3 +192,69 @@ def test_format_estimate():
     # an albedo close to 1 shows the digits of 1 - albedo; MAP only has no interval
     assert format_estimate({"map": 0.99999969})["estimate"] == "0.99999969"
     assert format_estimate({"map": np.float64(13.16)})["q90"] == "&mdash;"
+
+
+def test_kappa_s_reduced_in_results_and_report(fit_outputs, tmp_path):
+    """results.json's kappa_s' against kappa_s (1 - g) recomputed from samples.npz (median and
+    90 % interval exactly), and the report's row of it; MAP only: the Laplace interval, which
+    brackets the MAP, shown beside it."""
+    results = json.loads((fit_outputs["mcmc"] / "results.json").read_text())
+    s = np.load(fit_outputs["mcmc"] / "samples.npz")
+    for ch in results["channels"]:
+        red = results["parameters"]["kappa_s_reduced"][ch]
+        x = s[f"{ch}/kappa_s"] * (1 - s[f"{ch}/g"])
+        assert [red["q05"], red["median"], red["q95"]] == pytest.approx(
+            np.percentile(x, [5, 50, 95]), rel=1e-12)
+        assert red["source"] == "samples"
+    out = _copy(fit_outputs["mcmc"], tmp_path / "mcmc")
+    text = write_report(out).read_text(encoding="ascii")
+    red = results["parameters"]["kappa_s_reduced"]["G"]
+    assert _cells(text, "G", "kappa_s_reduced", "1/mm")[0] == format_estimate(red)["estimate"]
+    out = _copy(fit_outputs["map"], tmp_path / "map")
+    red = json.loads((out / "results.json").read_text())["parameters"]["kappa_s_reduced"]["G"]
+    assert red["source"] == "laplace" and red["q05"] < red["map"] < red["q95"]
+    cell = _cells(write_report(out).read_text(encoding="ascii"), "G", "kappa_s_reduced", "1/mm")[0]
+    assert cell.startswith(format_estimate(red)["estimate"]) and "Laplace" in cell
+
+
+def test_report_trust_box(fit_outputs, tmp_path):
+    """The trust verdict at the top of the report: a passed check says so with the model's
+    name; a failed one (results.json trust.ok false) gives the red box with every reason,
+    before the estimates, and the channel's flag names the limit."""
+    out = _copy(fit_outputs["map"], tmp_path / "fit")
+    results = json.loads((out / "results.json").read_text())
+    assert results["trust"]["ok"] is True and results["trust"]["model"] == "single"
+    text = write_report(out).read_text(encoding="ascii")
+    assert "Misfit check passed" in text and "Do not use these values" not in text
+    reason = "the model (single) does not describe the images: chi2/pixel 39 in channel G <x>"
+    results["trust"].update(ok=False, reasons=[reason])
+    results["trust"]["misfit"]["G"].update(ok=False, limit=1.25)
+    results["diagnostics"]["channels"]["G"]["chi2_per_pixel"] = 39.0
+    (out / "results.json").write_text(json.dumps(results))
+    text = write_report(out).read_text(encoding="ascii")
+    assert text.index('class="untrusted"') < text.index("<h2>Estimates</h2>")
+    assert "Do not use these values" in text and "Misfit check passed" not in text
+    assert "chi2/pixel 39 in channel G &lt;x&gt;" in text
+    assert "&chi;&sup2;/pixel = 39, above the 1.25 that the noise model allows" in text
+
+
+def test_report_shows_the_multiple_scattering_part(fit_outputs, tmp_path):
+    """With ms_0 in fit_images.npz (a model with a multiple-scattering term) the image figure
+    has five panels per channel (data, model, its single- and multiple-scattering parts,
+    residual) and the text says so; without it three."""
+    from fitmedia.report.plots import image_figure
+
+    out = _copy(fit_outputs["map"], tmp_path / "fit")
+    z = dict(np.load(out / "fit_images.npz"))
+    ms = 0.4 * z["model_0"]
+    noise = {c: {"gain": 2e-5, "read_var": 1e-9} for c in "RGB"}
+    for extra, n in ((None, 3), (ms, 5)):
+        fig, _ = image_figure(z["data_0"], z["model_0"], z["valid_0"], ["R", "G", "B"], noise,
+                              "t", ms=extra)
+        titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
+        assert len(titles) == 3 * n
+        assert any("multiple scattering" in t for t in titles) is (extra is not None)
+    np.savez(out / "fit_images.npz", **z, ms_0=ms)
+    text = write_report(out).read_text(encoding="ascii")
+    assert "single- and multiple-scattering parts beside it" in text
+    assert len(IMG_TAG.findall(text)) == 1

@@ -11,6 +11,8 @@ import numpy as np
 from .. import __version__
 from ..regimes import regime, tank_optical_depths
 from ..spec import CHANNELS
+from ..trust import (misfit_checks, not_separable_note, reduced_from_laplace,
+                     reduced_from_samples, separable)
 from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
 from .params import ALBEDO_UNIFORM_WEIGHT
@@ -70,6 +72,9 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
                         kappa_s_consistent_with_zero=bool(ks["q05"] < 1e-3 * ks["q95"]))
             if "modes" in f:
                 info["g_modes"] = f["modes"]
+        params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys)
+        info.update(kappa_s_reduced_width_ratio=ratio, kappa_s_g_separable=separable(
+            ratio, info.get("kappa_s_consistent_with_zero")))
         chans[ch] = info
     diag: dict = {}
     if options.mcmc:
@@ -95,6 +100,7 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
     return {
         "fitmedia_spec": 1,
         "model": options.model,
+        "trust": assess(params, chans, images, options.model),
         "units": {"length": "mm", "kappa": "1/mm"},
         "channels": list(spec.channels),
         "parameters": params,
@@ -124,6 +130,30 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
     }
 
 
+def _reduced(f: dict, phys: dict) -> tuple[dict, float | None]:
+    """kappa_s' = kappa_s (1 - g) of one channel's fit ``f`` (physical samples ``phys``):
+    from the samples, else from the Laplace covariance; and the width ratio (fitmedia.trust)."""
+    if "kappa_s" in phys:
+        return reduced_from_samples(phys["kappa_s"], phys["g"], f["map"]["kappa_s"], f["map"]["g"])
+    return reduced_from_laplace(f["x_map"], f.get("laplace_cov"), f["names"], f["map"]["kappa_s"],
+                                f["map"]["g"])
+
+
+def assess(params: dict, chans: dict[str, dict], images: list[dict], model: str) -> dict:
+    """results.json's ``trust`` (docs/results.md): the misfit guard on every channel and image,
+    and the channels whose kappa_s and g are not separately measured.  A channel that fails
+    the guard gets ``optical_depth_regime`` None: its kappa_t, hence its optical depth, is
+    biased by an unknown amount."""
+    checks, reasons = misfit_checks(chans, images, model)
+    for ch, c in checks.items():
+        if c["ok"] is False:
+            chans[ch]["optical_depth_regime"] = None
+    notes = [not_separable_note(ch, params["kappa_s_reduced"][ch]) for ch, info in chans.items()
+             if info.get("kappa_s_g_separable") is False]
+    return {"ok": not reasons, "model": model, "reasons": reasons, "notes": notes,
+            "misfit": checks}
+
+
 def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results: dict) -> None:
     """results.json, samples.npz (posterior, physical and unconstrained), fit_images.npz."""
     out_dir = Path(out_dir)
@@ -149,8 +179,14 @@ def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results:
     idx = [CHANNELS.index(c) for c in spec.channels]
     for i, im in enumerate(prep.images):
         imgs[f"data_{i}"] = im.data[..., idx]
-        imgs[f"valid_{i}"] = im.valid[..., idx]
+        # the pixels the fit used (the image's valid pixels that see the water) where the fit
+        # says which, else the image's valid pixels
+        imgs[f"valid_{i}"] = np.stack([fits[c]["valid_images"][i] if "valid_images" in fits[c]
+                                       else im.valid[..., CHANNELS.index(c)]
+                                       for c in spec.channels], -1)
         imgs[f"model_{i}"] = np.stack([fits[c]["model_images"][i] for c in spec.channels], -1)
+        if all("ms_images" in fits[c] for c in spec.channels):  # the multiple-scattering part
+            imgs[f"ms_{i}"] = np.stack([fits[c]["ms_images"][i] for c in spec.channels], -1)
     imgs["channels"] = np.array(spec.channels)
     save_npz(out_dir / "fit_images.npz", imgs)
     write_json(out_dir / "results.json", results)

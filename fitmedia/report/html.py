@@ -26,13 +26,18 @@ from .plots import finite_or_none as _num
 from .plots import prior_bound_flags
 
 QUANTITIES = ("kappa_a", "kappa_s", "kappa_t", "albedo", "g")
-KAPPAS = ("kappa_a", "kappa_s", "kappa_t")
+KAPPAS = ("kappa_a", "kappa_s", "kappa_t", "kappa_s_reduced")
 LABELS = {"kappa_a": "&kappa;<sub>a</sub> absorption", "kappa_s": "&kappa;<sub>s</sub> scattering",
           "kappa_t": "&kappa;<sub>t</sub> extinction", "g": "g (HG anisotropy)",
-          "albedo": "albedo &kappa;<sub>s</sub>/&kappa;<sub>t</sub>"}
+          "albedo": "albedo &kappa;<sub>s</sub>/&kappa;<sub>t</sub>",
+          "kappa_s_reduced": "&kappa;<sub>s</sub>&prime; = &kappa;<sub>s</sub>(1&minus;g) reduced "
+                             "scattering"}
 G_UNCONSTRAINED = "g unconstrained: the medium hardly scatters in this channel"
 KS_ZERO = "&kappa;<sub>s</sub> consistent with zero"
-CHI2_WARN = (0.5, 2.0)  # chi2 per pixel outside this range is flagged
+CHI2_WARN = (0.5, 2.0)  # chi2 per pixel outside this range is flagged (without results' trust)
+KS_G_NOT_SEPARABLE = ("&kappa;<sub>s</sub> and g not separately measured (the images constrain "
+                      "&kappa;<sub>s</sub>&prime; = &kappa;<sub>s</sub>(1&minus;g)): read "
+                      "&kappa;<sub>s</sub>&prime;, not &kappa;<sub>s</sub> and g on their own")
 
 CSS = """
 body { font-family: sans-serif; max-width: 1250px; margin: 1em auto; padding: 0 1em;
@@ -46,6 +51,10 @@ th { background: #f3f3f3; } tr.chan th { background: #e8e8e8; } tr.permetre td {
 td:first-child { white-space: nowrap; }
 td.num .txt { white-space: normal; font-family: sans-serif; }
 .warn { background: #fff3cd; border: 1px solid #d9a400; padding: 0.4em 0.8em; margin: 0.3em 0; }
+.untrusted { background: #fde2e2; border: 3px solid #c00000; padding: 0.5em 1em;
+             margin: 0.8em 0; }
+.untrusted h2 { color: #a40000; border: none; margin: 0 0 0.3em 0; }
+.trusted { background: #e6f4e6; border: 1px solid #3a8a3a; padding: 0.4em 0.8em; margin: 0.5em 0; }
 .flag { color: #a40000; font-weight: normal; margin-left: 1em; } .bad { color: #a40000; }
 .muted { color: #666; font-size: 0.9em; }
 img { max-width: 100%; border: 1px solid #ddd; margin: 0.3em 0; }
@@ -257,11 +266,29 @@ def _channel_flags(results: dict, ch: str, samples: dict[str, np.ndarray] | None
                          f"{_fmt(m.get('weight'), '.3f')}" for m in modes)
                      + ("; the 99 % intervals reach into both; add liquid to separate them"
                         if both else "; the smaller holds &lt; 0.5 %, outside the 99 % intervals"))
-    chi2 = _num(info.get("chi2_per_pixel"))
-    if chi2 is not None and not CHI2_WARN[0] <= chi2 <= CHI2_WARN[1]:
-        flags.append(f"&chi;&sup2;/pixel = {chi2:.3g}: the model does not match the data "
-                     "within the noise model")
+    if info.get("kappa_s_g_separable") is False:
+        flags.append(KS_G_NOT_SEPARABLE)
+    flags.extend(_chi2_flags(results, ch, info))
     return flags
+
+
+def _chi2_flags(results: dict, ch: str, info: dict) -> list[str]:
+    """The misfit guard's verdict on channel ``ch`` (results.json ``trust.misfit``); an old
+    results.json without it: chi2/pixel outside ``CHI2_WARN``.  chi2/pixel below
+    ``CHI2_WARN[0]`` is flagged either way (the noise model overstates the noise)."""
+    chi2 = _num(info.get("chi2_per_pixel"))
+    check = ((results.get("trust") or {}).get("misfit") or {}).get(ch)
+    if chi2 is None:
+        return []
+    if isinstance(check, dict) and check.get("ok") is False:
+        return [f"&chi;&sup2;/pixel = {chi2:.3g}, above the {_fmt(check.get('limit'), '.3g')} "
+                "that the noise model allows: the model does not describe the images"]
+    if isinstance(check, dict) and chi2 >= CHI2_WARN[0]:
+        return []
+    if not CHI2_WARN[0] <= chi2 <= CHI2_WARN[1]:
+        return [f"&chi;&sup2;/pixel = {chi2:.3g}: the model does not match the data within "
+                "the noise model"]
+    return []
 
 
 def _fmt(value: Any, spec: str) -> str:
@@ -294,7 +321,40 @@ def _header(results: dict, rpath: Path) -> str:
     ]
     meta = "".join(f"<dt>{k}</dt><dd>{v}</dd>" for k, v in items)
     return (f"<h1>fitmedia report: {html.escape(str(results.get('name', '')))}</h1>\n"
-            f'<dl class="meta">{meta}</dl>\n')
+            + _trust_box(results) + f'<dl class="meta">{meta}</dl>\n')
+
+
+def _model_text(results: dict) -> str:
+    """The forward model: ``model``, and ``model_used`` where it differs (``--model auto``)."""
+    model, used = results.get("model"), results.get("model_used")
+    return str(model) if used in (None, model) else f"{model} (used: {used})"
+
+
+def _trust_box(results: dict) -> str:
+    """results.json's ``trust`` at the top of the report: a red box with the reasons when the
+    misfit guard fired, a green line when it passed, its notes (kappa_s and g not separately
+    measured) below."""
+    trust = results.get("trust")
+    if not isinstance(trust, dict):
+        return ('<div class="warn" id="trust">This results.json has no <code>trust</code> '
+                "verdict (written by an older fitmedia): the misfit guard was not applied; "
+                "check &chi;&sup2;/pixel under Sampler diagnostics.</div>\n")
+    model = html.escape(_model_text(results))
+    notes = "".join(f'<div class="warn"><b>Note:</b> {html.escape(str(n))}</div>\n'
+                    for n in trust.get("notes") or [])
+    if trust.get("ok") is False:
+        items = "".join(f"<li>{html.escape(str(r))}</li>" for r in trust.get("reasons") or [])
+        return ('<div class="untrusted" id="trust"><h2>Do not use these values: the model does '
+                f"not describe the images</h2>\n<p>Model: <b>{model}</b>. The fit's residuals "
+                "are far larger than the camera's noise allows, so the values below are biased by "
+                "an amount their intervals do not show (<code>fitmedia fit</code> exited with "
+                f"code 1).</p>\n<ul>{items}</ul>\n<p>Common causes: multiple scattering, which "
+                "the single-scattering model leaves out (dilute further; "
+                "docs/multiple_scattering.md); a wrong geometry or concentration in the spec; a "
+                "wrong noise model. See the residual images below.</p></div>\n" + notes)
+    return (f'<div class="trusted" id="trust"><b>Misfit check passed</b> (model <b>{model}</b>): '
+            "&chi;&sup2;/pixel at the MAP within what the noise model allows in every channel "
+            "and image.</div>\n" + notes)
 
 
 def _warnings(results: dict, samples: dict[str, np.ndarray]) -> str:
@@ -311,7 +371,7 @@ def _warnings(results: dict, samples: dict[str, np.ndarray]) -> str:
                      "the table gives MAP values without uncertainties.</div>")
     for ch in results.get("channels", []):
         for flag in _channel_flags(results, ch, samples):
-            if not flag.startswith("sampler"):
+            if not flag.startswith("sampler") and flag != KS_G_NOT_SEPARABLE:  # in the trust box
                 lines.append(f'<div class="warn"><b>Channel {html.escape(ch)}:</b> {flag}</div>')
     return "\n".join(lines)
 
@@ -331,13 +391,16 @@ def _estimates(results: dict, samples: dict[str, np.ndarray]) -> str:
                         for f in _channel_flags(results, ch, samples))
         rows.append(f'<tr class="chan"><th colspan="{ncol}">Channel {html.escape(ch)}{flags}'
                     "</th></tr>\n")
-        for q in QUANTITIES:
+        for q in QUANTITIES + ("kappa_s_reduced",):
             entry = params.get(q, {}).get(ch)
             if entry is None:
                 continue
             units = [("1/mm", 1.0), ("1/m", 1000.0)] if q in KAPPAS else [("unitless", 1.0)]
             for unit, scale in units:
                 c = format_estimate(entry, scale)
+                if entry.get("source") == "laplace" and "q05" in entry:  # kappa_s', --no-mcmc
+                    lo, hi = (format_sig(entry[k] * scale, 3) for k in ("q05", "q95"))
+                    c["estimate"] += f' <span class="txt">(90 %: {lo} &ndash; {hi}, Laplace)</span>'
                 cls = ' class="permetre"' if scale != 1.0 else ""
                 cells = [c["estimate"]] + ([c["q68"], c["q90"], c["map"]] if sampled else [])
                 rows.append(f"<tr{cls} data-channel=\"{html.escape(ch)}\" data-quantity=\"{q}\" "
@@ -351,6 +414,9 @@ def _estimates(results: dict, samples: dict[str, np.ndarray]) -> str:
         "<p><b>All values are of the undiluted liquid (concentration 1)</b>"
         + (f"; the photographed dilutions had concentrations {conc_txt}" if concs else "")
         + ". &kappa; in 1/mm and in 1/m (1/m = 1/mm &times; 1000); albedo and g are unitless. "
+        + "&kappa;<sub>s</sub>&prime; = &kappa;<sub>s</sub>(1&minus;g) is always given: in a "
+          "dense medium the images constrain it and &kappa;<sub>t</sub>, not &kappa;<sub>s</sub> "
+          "and g on their own (the similarity relation). "
         + ("Median of the posterior with its central 68 % and 90 % intervals; MAP = maximum "
            "a posteriori." if sampled else
            "No sampler ran: MAP (maximum a posteriori) values only, no intervals.")
@@ -383,10 +449,14 @@ def _images_section(results: dict, images: dict[str, np.ndarray]) -> str:
     parts = ["<h2>Data, model and residuals</h2>\n",
              _table(["#", "Path(s)", "Concentration", "Saturated pixels", "Masked pixels"], rows,
                     num_from=2),
-             "<p>Per channel: data and model on a shared logarithmic colour scale (values below "
-             "its lower end drawn darkest); residual (data &minus; model)/&sigma; with "
-             "&sigma;&sup2; = gain&middot;model + read_var, scale fixed at &plusmn;5. Grey: pixels "
-             "not used in the fit.</p>\n"]
+             f"<p>Model: <b>{html.escape(_model_text(results))}</b>. Per channel: data and "
+             "model at the MAP on a shared logarithmic colour scale (values below its lower end "
+             "drawn darkest)"
+             + ("; the model's single- and multiple-scattering parts beside it"
+                if any(k.startswith("ms_") for k in images) else
+                " (this model gives no separate multiple-scattering part)")
+             + "; residual (data &minus; model)/&sigma; with &sigma;&sup2; = gain&middot;model + "
+             "read_var, scale fixed at &plusmn;5. Grey: pixels not used in the fit.</p>\n"]
     for i, uri in fit_image_plots(results, images):
         parts.append(f'<img alt="data, model and residual of image {i}" src="{uri}">\n' if uri
                      else f"<p class='bad'>Image {i}: fit_images.npz lacks its data, model or "

@@ -210,8 +210,10 @@ def standardised_residual(data: np.ndarray, model: np.ndarray, gain: float, read
 
 
 def image_figure(data: np.ndarray, model: np.ndarray, valid: np.ndarray, channels: list[str],
-                 noise: dict[str, dict], title: str) -> tuple[Figure, dict[str, float]]:
-    """Data, model and standardised residual of one image, one row per channel.
+                 noise: dict[str, dict], title: str, ms: np.ndarray | None = None
+                 ) -> tuple[Figure, dict[str, float]]:
+    """Data, model and standardised residual of one image, one row per channel; with ``ms``
+    also the model's single- and multiple-scattering parts (model - ms and ms).
 
     Parameters
     ----------
@@ -225,6 +227,8 @@ def image_figure(data: np.ndarray, model: np.ndarray, valid: np.ndarray, channel
         ``{channel: {"gain": float, "read_var": float}}`` (results.json ``noise.per_channel``).
     title : str
         Figure title.
+    ms : ndarray of shape (H, W, C), optional
+        The multiple-scattering part of ``model`` (fit_images.npz ``ms_{i}``).
 
     Returns
     -------
@@ -238,9 +242,10 @@ def image_figure(data: np.ndarray, model: np.ndarray, valid: np.ndarray, channel
 
     h, w = data.shape[:2]
     n = len(channels)
-    panel_w = 3.6
-    fig = new_figure(3 * panel_w + 1.6, n * (panel_w * h / w + 0.55) + 0.5)
-    axes = fig.subplots(n, 3, squeeze=False)
+    ncol = 3 if ms is None else 5
+    panel_w = 3.6 if ms is None else 2.8
+    fig = new_figure(ncol * panel_w + 1.6, n * (panel_w * h / w + 0.55) + 0.5)
+    axes = fig.subplots(n, ncol, squeeze=False)
     cmap = colormaps["magma"].with_extremes(bad=INVALID_GREY)
     rcmap = colormaps["RdBu_r"].with_extremes(bad=INVALID_GREY)
     chi2 = {}
@@ -254,19 +259,22 @@ def image_figure(data: np.ndarray, model: np.ndarray, valid: np.ndarray, channel
         rv = r[v & np.isfinite(r)]
         chi2[ch] = float(np.mean(rv**2)) if rv.size else float("nan")
         n_bad = int(np.sum(~v))
-        for j, (img, name) in enumerate(((d, "data"), (m, "model"))):
+        panels = [(d, "data"), (m, "model")]
+        if ms is not None:
+            panels += [(m - ms[..., k], "single scattering"), (ms[..., k], "multiple scattering")]
+        for j, (img, name) in enumerate(panels):
             shown = np.ma.masked_array(np.maximum(img, vmin), mask=~v)
             im = axes[k, j].imshow(shown, cmap=cmap, norm=norm, interpolation="nearest")
             axes[k, j].set_title(f"{ch}: {name}", fontsize=10)
-        cb = fig.colorbar(im, ax=axes[k, :2], shrink=0.9, extend="min", pad=0.01)
+        cb = fig.colorbar(im, ax=axes[k, :-1], shrink=0.9, extend="min", pad=0.01)
         cb.set_label("value [image units]\n(log scale, shared)", fontsize=8)
         shown_r = np.ma.masked_array(np.nan_to_num(r), mask=~(v & np.isfinite(r)))
-        imr = axes[k, 2].imshow(shown_r, cmap=rcmap,
-                                norm=Normalize(-RESIDUAL_LIMIT, RESIDUAL_LIMIT),
-                                interpolation="nearest")
-        axes[k, 2].set_title(f"{ch}: residual, χ²/pixel = {chi2[ch]:.3g}"
+        imr = axes[k, -1].imshow(shown_r, cmap=rcmap,
+                                 norm=Normalize(-RESIDUAL_LIMIT, RESIDUAL_LIMIT),
+                                 interpolation="nearest")
+        axes[k, -1].set_title(f"{ch}: residual, χ²/pixel = {chi2[ch]:.3g}"
                              + (f", {n_bad} px grey" if n_bad else ""), fontsize=10)
-        cbr = fig.colorbar(imr, ax=axes[k, 2], shrink=0.9, extend="both", pad=0.01)
+        cbr = fig.colorbar(imr, ax=axes[k, -1], shrink=0.9, extend="both", pad=0.01)
         cbr.set_label("(data − model) / σ\n[standard deviations]", fontsize=8)
         for ax in axes[k]:
             ax.set_xticks([])
@@ -360,7 +368,8 @@ def fit_image_plots(results: dict, images: dict[str, np.ndarray]) -> list[tuple[
         results.json (noise model, concentrations).
     images : dict of str to ndarray
         fit_images.npz: ``data_{i}``, ``model_{i}``, ``valid_{i}`` of shape (H, W, C) and
-        ``channels``.
+        ``channels``; optionally ``ms_{i}``, the multiple-scattering part of ``model_{i}``
+        (a model that has one), shown beside it with the single-scattering part.
 
     Returns
     -------
@@ -379,6 +388,6 @@ def fit_image_plots(results: dict, images: dict[str, np.ndarray]) -> list[tuple[
         conc = finite_or_none(info[i].get("concentration")) if i < len(info) else None
         title = f"Image {i}" + ("" if conc is None else f" (concentration {conc:.4g})")
         fig, _ = image_figure(images[keys[0]], images[keys[1]], images[keys[2]].astype(bool),
-                              chans, noise, title)
+                              chans, noise, title, ms=images.get(f"ms_{i}"))
         out.append((i, figure_to_data_uri(fig)))
     return out

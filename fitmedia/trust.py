@@ -1,0 +1,220 @@
+"""Can a fit's numbers be trusted?  Two checks on every fit (docs/results.md, "trust"):
+
+* the **misfit guard**: chi2/pixel at the MAP against what the noise model allows for that
+  many pixels.  A model that does not describe the images (single scattering where multiple
+  scattering is most of the glow, a wrong geometry) gives values biased by an amount the
+  intervals do not show; ``fitmedia fit`` then says so and exits 1.
+* **kappa_s and g separable?**  In a dense medium the images constrain only kappa_t and the
+  reduced scattering coefficient kappa_s' = kappa_s (1 - g) (the similarity relation), so a
+  kappa_s and a g reported on their own are one arbitrary point of a ridge.  kappa_s' is
+  always reported with its interval; where it is known much better than kappa_s, the verdict
+  says that kappa_s and g are not separately measured.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+#: Tail probability of the noise-only chi2 distribution that the guard tolerates.
+CHI2_TAIL = 1e-6
+#: Allowance for model error in chi2/pixel, added to the noise-only limit.  Chosen from
+#: measurements (docs/results.md, "trust"; docs/studies/misfit_study.py).
+MODEL_ERROR_ALLOWANCE = 0.25
+#: kappa_s and g count as not separately measured when the 90 % interval of log kappa_s' is
+#: narrower than this fraction of the 90 % interval of log kappa_s (docs/results.md).
+SEPARABLE_WIDTH_RATIO = 0.5
+Z90 = 1.6448536269514722  # the standard normal's 95 % quantile
+Z68 = 0.9944578832097532  # its 84 % quantile
+
+
+def chi2_limit(n_pixels: int) -> float:
+    """The largest chi2/pixel at the MAP that the guard accepts for ``n_pixels`` pixels: the
+    upper ``CHI2_TAIL`` quantile of chi2 with ``n_pixels`` degrees of freedom, divided by
+    ``n_pixels``, plus ``MODEL_ERROR_ALLOWANCE``."""
+    from scipy.stats import chi2
+
+    n = max(int(n_pixels), 1)
+    return float(chi2.isf(CHI2_TAIL, n) / n) + MODEL_ERROR_ALLOWANCE
+
+
+def misfit(chi2_per_pixel: float | None, n_pixels: int) -> dict:
+    """The guard's verdict on one chi2/pixel: ``chi2_per_pixel``, ``n_pixels``, ``limit``,
+    ``ok`` (None where chi2 is unknown: no pixels or not finite)."""
+    limit = chi2_limit(n_pixels)
+    known = chi2_per_pixel is not None and n_pixels > 0 and math.isfinite(chi2_per_pixel)
+    return {"chi2_per_pixel": chi2_per_pixel if known else None, "n_pixels": int(n_pixels),
+            "limit": limit, "ok": bool(chi2_per_pixel <= limit) if known else None}
+
+
+def misfit_reason(ch: str, check: dict, model: str, where: str = "") -> str:
+    """The plain-words reason of a failed :func:`misfit` check."""
+    return (f"the model ({model}) does not describe the images{where}: chi2/pixel "
+            f"{check['chi2_per_pixel']:.3g} at the best fit in channel {ch}, where the noise "
+            f"model allows at most {check['limit']:.3g} ({check['n_pixels']} pixels); the values "
+            f"of channel {ch} are biased by an unknown amount and their intervals do not show it")
+
+
+def misfit_checks(chans: dict[str, dict], images: Sequence[dict], model: str
+                  ) -> tuple[dict[str, dict], list[str]]:
+    """The guard on every channel (all images together) and, for a series, on every image.
+
+    Parameters
+    ----------
+    chans : dict
+        results.json's ``diagnostics.channels``: ``chi2_per_pixel``, ``n_pixels``.
+    images : list of dict
+        results.json's ``images``: ``channels.<ch>.chi2_per_pixel_map``, ``n_pixels_used``.
+    model : str
+        The forward model's name, for the reasons.
+
+    Returns
+    -------
+    checks : dict
+        Per channel: :func:`misfit` of all its pixels, with ``images`` (:func:`misfit` per
+        image) for a series; ``ok`` is False when the channel or any of its images fails.
+    reasons : list of str
+        One line per failed channel (naming the worst image of a series).
+    """
+    checks, reasons = {}, []
+    for ch, info in chans.items():
+        c = misfit(info.get("chi2_per_pixel"), int(info.get("n_pixels") or 0))
+        per = [misfit(im["channels"][ch]["chi2_per_pixel_map"], im["channels"][ch]["n_pixels_used"])
+               for im in images if ch in im.get("channels", {})] if len(images) > 1 else []
+        bad = [i for i, p in enumerate(per) if p["ok"] is False]
+        if per:
+            c["images"] = per
+        if bad:
+            worst = max(bad, key=lambda i: per[i]["chi2_per_pixel"] / per[i]["limit"])
+            c["ok"] = False
+            reasons.append(misfit_reason(ch, per[worst], model, f" (worst: image {worst})"))
+        elif c["ok"] is False:
+            reasons.append(misfit_reason(ch, c, model))
+        checks[ch] = c
+    return checks, reasons
+
+
+# ---------------------------------------------------------------------------------------------
+# kappa_s' = kappa_s (1 - g)
+
+
+def _log_width90(x: np.ndarray) -> float | None:
+    """log(q95 / q05) of positive samples ``x``; None where q05 is not positive."""
+    q05, q95 = np.percentile(x, [5, 95])
+    return float(np.log(q95 / q05)) if q05 > 0 else None
+
+
+def reduced_from_samples(kappa_s: np.ndarray, g: np.ndarray, map_kappa_s: float, map_g: float
+                         ) -> tuple[dict, float | None]:
+    """kappa_s' = kappa_s (1 - g) from posterior samples: its summary (``map``, ``median``,
+    ``mean``, ``std``, ``q05`` ... ``q95``; ``source: "samples"``) and the ratio of the 90 %
+    interval widths of log kappa_s' and log kappa_s (None where kappa_s reaches 0)."""
+    red = np.asarray(kappa_s) * (1.0 - np.asarray(g))
+    q = np.percentile(red, [5, 16, 50, 84, 95])
+    out = {"map": float(map_kappa_s * (1.0 - map_g)), "median": float(q[2]),
+           "mean": float(np.mean(red)), "std": float(np.std(red)), "q05": float(q[0]),
+           "q16": float(q[1]), "q84": float(q[3]), "q95": float(q[4]), "source": "samples"}
+    w_s, w_r = _log_width90(np.asarray(kappa_s)), _log_width90(red)
+    ratio = w_r / w_s if w_s and w_r is not None else None
+    return out, ratio
+
+
+def reduced_from_laplace(x_map: np.ndarray, cov: np.ndarray | None, names: Sequence[str],
+                         map_kappa_s: float, map_g: float) -> tuple[dict, float | None]:
+    """kappa_s' from the MAP and the Laplace covariance of (log kappa_t, logit albedo,
+    atanh g, ...): log kappa_s' is linearised, its quantiles those of a normal in the log
+    (``source: "laplace"``); the width ratio as in :func:`reduced_from_samples`."""
+    red = float(map_kappa_s * (1.0 - map_g))
+    out: dict = {"map": red, "source": "laplace"}
+    if cov is None or not np.all(np.isfinite(cov)):
+        return out, None
+    u = np.asarray(x_map, float)
+    i_t, i_a, i_g = (list(names).index(n) for n in ("log_kappa_t", "logit_albedo", "atanh_g"))
+    albedo, g = 1.0 / (1.0 + np.exp(-u[i_a])), np.tanh(u[i_g])
+    j_s = np.zeros(len(u))
+    j_s[i_t], j_s[i_a] = 1.0, 1.0 - albedo  # d log kappa_s
+    j_r = j_s.copy()
+    j_r[i_g] = -(1.0 + g)                   # d log(1 - tanh u) / du = -(1 + g)
+    var_s, var_r = float(j_s @ cov @ j_s), float(j_r @ cov @ j_r)
+    if not (var_s > 0 and var_r > 0):
+        return out, None
+    sd = math.sqrt(var_r)
+    out.update({k: red * math.exp(z * sd) for k, z in
+                (("q05", -Z90), ("q16", -Z68), ("q84", Z68), ("q95", Z90))}, sd_log=sd)
+    return out, sd / math.sqrt(var_s)
+
+
+def separable(width_ratio: float | None, kappa_s_consistent_with_zero: bool | None
+              ) -> bool | None:
+    """Are kappa_s and g separately measured?  False when log kappa_s' is known more than
+    1 / ``SEPARABLE_WIDTH_RATIO`` times better than log kappa_s; None when that cannot be
+    told (no interval, or kappa_s consistent with zero)."""
+    if width_ratio is None or kappa_s_consistent_with_zero:
+        return None
+    return bool(width_ratio >= SEPARABLE_WIDTH_RATIO)
+
+
+def not_separable_note(ch: str, reduced: dict) -> str:
+    """The plain-words note for a channel whose kappa_s and g are not separately measured."""
+    lo, hi = reduced.get("q05"), reduced.get("q95")
+    value = reduced.get("median", reduced["map"])
+    interval = f" (90 % interval {lo:.4g} - {hi:.4g})" if lo is not None else ""
+    return (f"channel {ch}: kappa_s and g are not separately measured (a dense medium: the "
+            f"images constrain only kappa_t and kappa_s' = kappa_s (1 - g)); read "
+            f"kappa_s' = {value:.4g} 1/mm{interval}, not kappa_s and g on their own")
+
+
+# ---------------------------------------------------------------------------------------------
+# what `fitmedia fit` prints
+
+
+def _value(entry: dict, key: str, digits: str = ".4g") -> str:
+    """``entry[key]``, with the 90 % interval where the entry has one (a sampler ran)."""
+    text = format(entry[key], digits)
+    if "q05" in entry and "q95" in entry and entry.get("source") != "laplace":
+        text += f" [{entry['q05']:{digits}}, {entry['q95']:{digits}}]"
+    return text
+
+
+def value_line(results: dict, ch: str) -> str:
+    """One channel's line of ``fitmedia fit``'s output: kappa_a, kappa_s, g (with their 90 %
+    intervals in brackets when a sampler ran), or kappa_a and kappa_s' where kappa_s and g are
+    not separately measured."""
+    p = results["parameters"]
+    key = "median" if "median" in p["kappa_s"][ch] else "map"
+    what = ("(1/mm, undiluted, median [90 % interval])" if key == "median" else
+            "(1/mm, undiluted, map; no intervals without the sampler)")
+    info = results.get("diagnostics", {}).get("channels", {}).get(ch, {})
+    red = p.get("kappa_s_reduced", {}).get(ch)
+    if red is not None and info.get("kappa_s_g_separable") is False:
+        value = red.get(key, red["map"])
+        interval = f" (90 %: {red['q05']:.4g} - {red['q95']:.4g})" if "q05" in red else ""
+        return (f"  {ch}: kappa_a={_value(p['kappa_a'][ch], key)} kappa_s'=kappa_s(1-g)="
+                f"{value:.4g}{interval}; kappa_s and g not separately measured {what}")
+    return (f"  {ch}: kappa_a={_value(p['kappa_a'][ch], key)} "
+            f"kappa_s={_value(p['kappa_s'][ch], key)} g={_value(p['g'][ch], key, '.3f')} {what}")
+
+
+def print_values(results: dict) -> None:
+    """Print every channel's :func:`value_line`."""
+    for ch in results["channels"]:
+        print(value_line(results, ch))
+
+
+def print_verdict(results: dict) -> int:
+    """Print results.json's ``trust`` reasons and notes; the exit code of ``fitmedia fit``:
+    1 when the misfit guard fired (the values are doubtful), else 0."""
+    import sys
+
+    trust = results.get("trust") or {}
+    for note in trust.get("notes", []):
+        print(f"note: {note}")
+    if trust.get("ok", True):
+        return 0
+    for reason in trust.get("reasons", []):
+        print(f"fitmedia: doubtful result: {reason}", file=sys.stderr)
+    print("fitmedia: doubtful result: the values above cannot be trusted; results.json (trust) "
+          "and the report say why (exit code 1)", file=sys.stderr)
+    return 1

@@ -1,0 +1,115 @@
+"""The misfit guard (fitmedia.trust, docs/results.md "trust"): chi2/pixel at the MAP against
+what the noise model allows; fires on a full-transport milk capture fitted with single
+scattering, silent on a single-scattering one; `fitmedia fit` exits 1 when it fires."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from fitmedia import trust
+from fitmedia.cli import main
+
+DATA = Path(__file__).resolve().parent / "data" / "misfit"
+
+
+def test_chi2_limit_against_wilson_hilferty():
+    """The noise-only part of the limit against the Wilson-Hilferty approximation of the chi2
+    quantile (independent of scipy's chi2.isf; accurate to ~1e-3 relative for N >= 100)."""
+    z = norm.isf(trust.CHI2_TAIL)
+    for n in (100, 480, 1080, 30000):
+        wh = (1 - 2 / (9 * n) + z * np.sqrt(2 / (9 * n))) ** 3
+        assert trust.chi2_limit(n) - trust.MODEL_ERROR_ALLOWANCE == pytest.approx(wh, rel=2e-3)
+
+
+def test_guard_silent_on_noise_fires_on_misfit(rng):
+    """Simulated standardised residuals: 20000 noise-only chi2/pixel draws of N = 480 pixels
+    never reach the limit (their largest is ~1.3 while the limit is 1.59); residuals whose
+    variance is 1.7 times the noise model's (a model error) exceed it."""
+    n = 480
+    noise_only = rng.chisquare(n, size=20000) / n
+    assert noise_only.max() < trust.chi2_limit(n)
+    assert trust.misfit(float(noise_only.max()), n)["ok"] is True
+    assert trust.misfit(float(np.mean((1.7 ** 0.5 * rng.standard_normal(n)) ** 2)), n)["ok"] \
+        is False
+    assert trust.misfit(float("nan"), n)["ok"] is None
+
+
+def _results(chi2_images: list[float], n: int = 500) -> tuple[dict, list[dict]]:
+    images = [{"channels": {"G": {"chi2_per_pixel_map": c, "n_pixels_used": n}}}
+              for c in chi2_images]
+    chans = {"G": {"chi2_per_pixel": float(np.mean(chi2_images)), "n_pixels": n * len(images),
+                   "optical_depth_regime": "informative", "kappa_s_g_separable": True}}
+    return chans, images
+
+
+def test_series_with_one_bad_image():
+    """A dilution series whose images pass together but one fails on its own (chi2/pixel 1.2
+    times its limit in image 2 of 4): the channel fails, the reason names image 2, and the
+    channel's optical_depth_regime is no longer 'informative'."""
+    from fitmedia.inference.results import assess
+
+    chans, images = _results([1.0, 1.0, 1.2 * trust.chi2_limit(500), 1.0])
+    assert trust.misfit(chans["G"]["chi2_per_pixel"], 2000)["ok"] is True  # the total passes
+    verdict = assess({"kappa_s_reduced": {"G": {"map": 1.0}}}, chans, images, "single")
+    assert verdict["ok"] is False
+    assert "(worst: image 2)" in verdict["reasons"][0] and "channel G" in verdict["reasons"][0]
+    assert chans["G"]["optical_depth_regime"] is None
+    chans, images = _results([1.0, 1.02])
+    verdict = assess({"kappa_s_reduced": {"G": {"map": 1.0}}}, chans, images, "single")
+    assert verdict["ok"] is True and verdict["reasons"] == []
+    assert chans["G"]["optical_depth_regime"] == "informative"
+
+
+def test_fit_exits_1_when_the_guard_fires(monkeypatch, tmp_path, capsys):
+    """`fitmedia fit` prints the reason and exits 1 when results' trust is not ok, 0 when it
+    is (the fit itself replaced by a stub returning a results dict)."""
+    import fitmedia.pipeline
+
+    chans, images = _results([40.0])
+    from fitmedia.inference.results import assess
+
+    res = {"channels": ["G"], "diagnostics": {"channels": chans},
+           "parameters": {q: {"G": {"map": 0.5}} for q in
+                          ("kappa_a", "kappa_s", "g", "kappa_t", "albedo", "kappa_s_reduced")}}
+    res["trust"] = assess(res["parameters"], chans, images, "single")
+    monkeypatch.setattr(fitmedia.pipeline, "fit", lambda *a, **k: res)
+    code = main(["fit", "x.yaml", "--out", str(tmp_path), "--no-mcmc", "--no-report"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "does not describe the images: chi2/pixel 40" in err and "Traceback" not in err
+    res["trust"] = assess(res["parameters"], *_results([1.0]), "single")
+    assert main(["fit", "x.yaml", "--out", str(tmp_path), "--no-mcmc", "--no-report"]) == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("capture, fires", [("milk_full", True), ("milk_mitsuba_ss", False)])
+def test_guard_on_full_transport_capture(capture, fires, tmp_path, capsys):
+    """Lowfat Milk 16 ml in 23 l, 32 x 24 px, channel G, made by Mitsuba 3 at 1024 spp
+    (tests/data/misfit/README.md): with all orders of scattering (multiple scattering ~60 % of
+    the glow, docs/multiple_scattering.md) the single-scattering fit's chi2/pixel is far above
+    the limit and `fitmedia fit` exits 1; the same scene rendered by Mitsuba with scattering
+    orders 0 and 1 only, the same spp (so the same kind of Monte Carlo noise), passes: the
+    guard fires because multiple scattering is missing from the model, not because of the
+    render's noise."""
+    spec = tmp_path / capture
+    shutil.copytree(DATA / capture, spec)
+    code = main(["fit", str(spec / "capture.yaml"), "--out", str(tmp_path / "fit"), "--no-mcmc",
+                 "--quiet", "--workers", "1"])
+    out = capsys.readouterr()
+    res = json.loads((tmp_path / "fit" / "results.json").read_text())
+    assert (tmp_path / "fit" / "report.html").is_file()
+    assert code == (1 if fires else 0), out.err
+    assert res["trust"]["ok"] is (not fires)
+    check = res["trust"]["misfit"]["G"]
+    if fires:
+        assert check["chi2_per_pixel"] > 3 * check["limit"]
+        assert "does not describe the images" in out.err
+        assert res["diagnostics"]["channels"]["G"]["optical_depth_regime"] is None
+    else:
+        assert check["chi2_per_pixel"] < check["limit"]
