@@ -78,7 +78,8 @@ def test_the_bundled_captures_pass_the_checks():
 
 
 @pytest.mark.parametrize("camera, words", [
-    ({"position": [600, 0, 300], "look_at": [600, 0, 0]}, "crosses the front wall's plane at x = 301"),
+    ({"position": [600, 0, 300], "look_at": [600, 0, 0]},
+     "crosses the front wall's plane at x = 301"),
     ({"look_at": [900, 0, 0]}, "projects outside the image"),
 ])
 def test_an_unseen_bulb_is_named_for_what_it_is(camera, words):
