@@ -271,14 +271,19 @@ def run_case(case: Case, d: Path, base: Path) -> tuple[subprocess.CompletedProce
 
 
 def problems(case: Case, res: subprocess.CompletedProcess, d: Path) -> list[str]:
-    """What is wrong with a run of ``case``: exit code, missing words, a traceback, files
-    left in {d}/out (unless ``case.out_left``)."""
+    """What is wrong with a run of ``case``: exit code, missing words in the message (the last
+    line of stderr; the only one, unless argparse printed its usage above it), a traceback or
+    a warning (numpy's overflow warnings), files left in {d}/out (unless ``case.out_left``)."""
     out = []
     if res.returncode != case.code:
         out.append(f"exit {res.returncode}, expected {case.code}")
-    out += [f"no {w!r} in the message" for w in case.words if w not in res.stderr]
-    if "Traceback" in res.stderr:
-        out.append("a traceback")
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    message = lines[-1] if lines else ""
+    out += [f"no {w!r} in the message" for w in case.words if w not in message]
+    if len(lines) > 1 and not res.stderr.startswith("usage:"):
+        out.append(f"{len(lines)} lines on stderr, expected one")
+    if "Traceback" in res.stderr or "Warning" in res.stderr:
+        out.append("a traceback or a warning")
     left = d / "out"
     if not case.out_left and left.exists() and any(left.iterdir()):
         out.append(f"files left in {left}: {sorted(p.name for p in left.iterdir())}")
