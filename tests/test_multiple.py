@@ -214,3 +214,21 @@ def test_total_against_mitsuba(case, n_paths, seed):
     sigma = math.hypot(per.std(ddof=1) / 4, ref["total_se"])
     assert sigma < 0.03 * total
     assert abs(total - ref["total"]) < 3 * sigma
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["Lowfat Milk 16 ml", "Espresso 8 ml"])
+def test_share_against_mitsuba(case, seed):
+    """The share of multiple scattering in the glow (G) against Mitsuba's at the same 48 x 36
+    px (tests/data/ms_mitsuba_reference.json: multiple / total over the same glow pixels),
+    within 3 standard errors of ours plus 0.01 (Mitsuba's error, tracing at 24 x 18)."""
+    from fitmedia.medium import medium_by_name
+
+    ref = json.loads((ROOT / "tests" / "data" / "ms_mitsuba_reference.json").read_text())[case]
+    name, ml, _ = case.rsplit(" ", 2)
+    m = medium_by_name(name).scaled(float(ml) / 23000).select(("G",))
+    ms = MultipleScattering(make_spec(width=48, height=36), None, channels=("G",), bin=2,
+                            n_paths=128, batches=16)
+    share, err = ms.share(m.kappa_a, m.kappa_s, m.g, seed=seed)
+    assert err[0] < 0.03
+    assert abs(share[0] - ref["multiple"] / ref["total"]) < 3 * err[0] + 0.01

@@ -115,6 +115,7 @@ class MultipleScattering:
         if not smooth >= 0:
             raise InputError(f"smooth: got {smooth}, expected a sigma >= 0 (sample pixels)")
         self.spec, self.bin, self.smooth = spec, int(bin), float(smooth)
+        self._image_index = image_index
         self.n_paths, self.batches = int(n_paths), int(batches)
         self.channels = tuple(channels or spec.channels)
         self.shape = (self.camera.height, self.camera.width)
@@ -171,6 +172,37 @@ class MultipleScattering:
     def upsample(self, low: np.ndarray) -> np.ndarray:
         """Sample-pixel values (per unit water area) -> camera pixels (times the water cover)."""
         return (self._up @ low) * self._cover
+
+    def share(self, kappa_a, kappa_s, g, *, seed: int = 0,
+              single: SingleScattering | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Share of multiple scattering in the glow per channel, MS / (analytic + MS) summed
+        over the glow (pixels off the bulb whose analytic order 1 is above 1e-3 of its
+        brightest), and its standard error from the batches; NaN where kappa_s = 0.
+
+        ``single``: the analytic model of the same image and channels (built if None).
+        """
+        c = len(self.channels)
+        ka, ks, gg, _ = _check_medium(kappa_a, kappa_s, g, 1.0, c)
+        single = single or SingleScattering(self.spec, self._image_index, channels=self.channels)
+        one = single.render(ka, ks, gg, np.ones(c))
+        direct = single.render(ka + ks, np.zeros(c), gg, np.ones(c))
+        share, err = np.full(c, np.nan), np.full(c, np.nan)
+        for k in range(c):
+            if ks[k] <= 0:
+                continue
+            order1 = (one[..., k] - direct[..., k]).ravel()
+            off = direct[..., k].ravel() <= 0
+            glow = off & (order1 > 1e-3 * order1[off].max())
+            kt, a = ka[k] + ks[k], ks[k] / (ka[k] + ks[k])
+            orders = self.orders(kt, gg[k], seed=seed, rr_albedo=a)
+            pw = a ** np.arange(orders.shape[1])
+            pw[0] = 0.0
+            sums = np.array([self.upsample(r)[glow].sum()
+                             for r in self.smoothed(np.tensordot(orders, pw, axes=([1], [0])))])
+            per = sums / (sums + order1[glow].sum())
+            share[k] = sums.mean() / (sums.mean() + order1[glow].sum())
+            err[k] = per.std(ddof=1) / math.sqrt(len(per))
+        return share, err
 
     def render(self, kappa_a, kappa_s, g, brightness, *, seed: int = 0
                ) -> tuple[np.ndarray, np.ndarray]:
