@@ -53,7 +53,7 @@ def test_no_scattering_no_term():
 
 def test_albedo_to_zero_is_linear(seed):
     """albedo -> 0: the term -> 0 like albedo (only order 1 via the front wall is linear in it;
-    it is ~1e-4 of order 2 for milk, so the limit shows below albedo ~1e-6): term(2a) / term(a)
+    it is ~3e-4 of order 2 for milk here, so the limit shows below albedo ~1e-6): term(2a) / term(a)
     -> 2."""
     _, ms = _small()
     orders = ms.orders(MILK["kt"], MILK["g"], seed=seed)
