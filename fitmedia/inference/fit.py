@@ -180,8 +180,10 @@ def prepare(spec: Spec) -> Prepared:
         noise = {c: (first[c]["gain"], first[c]["read_var"]) for c in spec.channels}
         noise_source = "estimated per image (results.json noise.per_image)"
         notes.append("noise model estimated from each image (no `noise` in the spec)")
-    for _, _, im in named:
-        checks.check_negative(im, ch_idx, spec.channels, [noise[c][1] for c in spec.channels],
+    for where, _, im in named:  # each image's largest read variance (brackets vary per pixel)
+        read = [float(np.max(maps[where][1][..., ci][im.valid[..., ci]], initial=0.0))
+                for ci in ch_idx]
+        checks.check_negative(im, ch_idx, spec.channels, read,
                               float(spec.priors.get("background_sd", 0.0)))
     brightness: dict[str, float | None]
     light = spec.light
