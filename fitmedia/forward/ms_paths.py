@@ -39,6 +39,7 @@ from .bulb_cap import A_OPAQUE, cap_table, log_cap_attenuation
 #: Half-angle of the slab-mirror cone, as a multiple of asin(r / water path).
 SLAB_CONE_MARGIN = 1.3
 RR_MIN = 0.05  # lowest survival probability of the roulette
+MIRROR_FRACTION = 0.25  # share of vertices that connect to the bulb through the front wall
 N_UNIFORMS = 12  # random numbers per path and order
 MIX_FRACTION = 1.0 / 3.0  # vertices: free flight, equiangular, forward peak, a third each
 MIX_ORDERS = 2  # vertices before this order use the mixture, later ones free flight only (its
@@ -404,7 +405,12 @@ class PathTracer:
             if not len(ids):
                 break
             u = uniforms(seed, k, ids, N_UNIFORMS)
-            add(k, wgt * self.nee_mirror(x, v, kt, g, u[:, 2:6]))
+            # the front-wall connections (~3e-4 of milk's term) for a random quarter of the
+            # paths, weighted 4x: unbiased, and a fifth of the cost saved
+            sel = np.flatnonzero(u[:, 0] < MIRROR_FRACTION)
+            mirror = np.zeros(len(ids))
+            mirror[sel] = self.nee_mirror(x[sel], v[sel], kt, g, u[sel, 2:6]) / MIRROR_FRACTION
+            add(k, wgt * mirror)
             v, f = self._scatter(x, v, g, u[:, 6:8], u[:, 11],
                                  GUIDE_FRACTION if k <= GUIDE_ORDERS else 0.0)
             wgt = wgt * f
