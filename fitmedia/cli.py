@@ -10,8 +10,12 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import InputError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .inference.fit import FitOptions
 
 
 def _positive_int(text: str) -> int:
@@ -149,6 +153,103 @@ def cmd_slab(a) -> int:
     return 0
 
 
+# ------------------------------------------------ validate, fit-many, export (batch.py, export.py)
+def _fit_options(a, **kw) -> FitOptions:
+    """FitOptions of validate and fit-many from their runner arguments."""
+    from .inference.fit import FitOptions
+
+    return FitOptions(seed=a.seed, max_steps=a.max_steps, n_tau=a.n_tau, progress=not a.quiet,
+                      **kw)
+
+
+def _add_runner_args(p) -> None:
+    p.add_argument("--scheduler", default=None,
+                   help="Dask scheduler address (tcp://host:8786); default: a local cluster; "
+                        "'serial' (batch.SERIAL): no Dask, one task after the other in this "
+                        "process")
+    p.add_argument("--workers", type=_positive_int, default=2,
+                   help="worker processes of the local cluster (default 2)")
+    p.add_argument("--max-steps", type=_positive_int, default=20000)
+    p.add_argument("--n-tau", type=_finite, default=50.0, help="chain length in autocorr. times")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def add_validate_parser(sub) -> None:
+    """Add ``fitmedia validate`` to the subparsers ``sub``."""
+    p = sub.add_parser("validate", help="synthetic round trips on Dask; coverage of the "
+                                        "credible intervals (docs/validation.md)")
+    p.add_argument("--rounds", type=_positive_int, required=True)
+    p.add_argument("--media", nargs="+", required=True, metavar="NAME",
+                   help="liquids of the Narasimhan 2006 table, used in turn")
+    p.add_argument("--out", type=_out_dir, required=True)
+    p.add_argument("--seed", type=_seed, default=0)
+    p.add_argument("--spec", default=None, help="geometry spec (default capture_specs/bulb.yaml)")
+    p.add_argument("--ml", type=_finite, nargs="+", default=None,
+                   help="ml per image of every round (default: drawn in 8-240 per round)")
+    p.add_argument("--tank-ml", type=_finite, default=23000.0)
+    p.add_argument("--optical-depth", type=_finite, nargs=2, default=None, metavar=("LO", "HI"),
+                   help="draw each round's ml so that the G channel's optical depth from the "
+                        "light to the front wall is log-uniform in LO-HI (instead of 8-240 ml)")
+    _add_runner_args(p)
+    p.set_defaults(func=cmd_validate)
+
+
+def cmd_validate(a) -> int:
+    """Exit code 0 when the criteria are met, 1 when not (the table says which)."""
+    from .batch import validate
+
+    res = validate(a.media, a.rounds, a.out, ml=a.ml, geometry=a.spec, seed=a.seed,
+                   scheduler=a.scheduler, n_workers=a.workers, options=_fit_options(a),
+                   tank_ml=a.tank_ml, optical_depth=a.optical_depth)
+    print(res.table, end="")
+    print(f"wrote {', '.join(str(f) for f in res.files)}")
+    return 0 if res.passed else 1
+
+
+def add_fit_many_parser(sub) -> None:
+    """Add ``fitmedia fit-many`` to the subparsers ``sub``."""
+    p = sub.add_parser("fit-many", help="fit many captures on Dask; summary.json")
+    p.add_argument("specs", nargs="+", metavar="SPEC")
+    p.add_argument("--out", type=_out_dir, required=True)
+    p.add_argument("--seed", type=_seed, default=0)
+    p.add_argument("--no-mcmc", action="store_true", help="MAP only, no posterior sampling")
+    p.add_argument("--no-report", action="store_true")
+    _add_runner_args(p)
+    p.set_defaults(func=cmd_fit_many)
+
+
+def cmd_fit_many(a) -> int:
+    """Exit code 0 when every capture was fitted, 2 when some failed (one line each)."""
+    from .batch import fit_many
+
+    recs = fit_many(a.specs, a.out, scheduler=a.scheduler, n_workers=a.workers,
+                    options=_fit_options(a, mcmc=not a.no_mcmc), report=not a.no_report)
+    for r in recs:
+        if r["status"] == "failed":
+            print(f"fitmedia: error: {r['name']}: {r['error']}", file=sys.stderr)
+        else:
+            print(f"{r['name']}: {r['status']} ({r['out']})")
+    print(f"wrote {Path(a.out) / 'summary.json'}")
+    return 2 if any(r["status"] == "failed" for r in recs) else 0
+
+
+def add_export_parser(sub) -> None:
+    """Add ``fitmedia export`` to the subparsers ``sub``."""
+    p = sub.add_parser("export", help="write DIR/results.json's medium for Mitsuba 3 and pbrt-v4")
+    p.add_argument("dir", help="a fit's output folder (reads results.json, writes beside it)")
+    p.add_argument("--scale-to-m", action="store_true",
+                   help="coefficients in 1/m for a scene in metres (default 1/mm)")
+    p.set_defaults(func=cmd_export)
+
+
+def cmd_export(a) -> int:
+    from .export import export_medium, read_results
+
+    paths = export_medium(read_results(a.dir), a.dir, scale_to_m=a.scale_to_m)
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="fitmedia", description=__doc__.splitlines()[0])
     p.add_argument("-v", "--verbose", action="store_true", help="log progress details")
@@ -214,9 +315,6 @@ def build_parser() -> argparse.ArgumentParser:
     sl.add_argument("--seed", type=_seed, default=0)
     sl.add_argument("--json", action="store_true")
     sl.set_defaults(func=cmd_slab)
-
-    from .batch import add_fit_many_parser, add_validate_parser
-    from .export import add_export_parser
 
     add_validate_parser(sub)
     add_fit_many_parser(sub)

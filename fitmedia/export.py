@@ -187,17 +187,3 @@ def read_results(directory: str | Path) -> dict:
         raise InputError(f"{path}: expected a JSON object")
     return data
 
-
-def add_export_parser(sub) -> None:
-    """Add ``fitmedia export`` to the subparsers ``sub``."""
-    p = sub.add_parser("export", help="write DIR/results.json's medium for Mitsuba 3 and pbrt-v4")
-    p.add_argument("dir", help="a fit's output folder (reads results.json, writes beside it)")
-    p.add_argument("--scale-to-m", action="store_true",
-                   help="coefficients in 1/m for a scene in metres (default 1/mm)")
-    p.set_defaults(func=cmd_export)
-
-
-def cmd_export(a) -> int:
-    paths = export_medium(read_results(a.dir), a.dir, scale_to_m=a.scale_to_m)
-    print("wrote " + ", ".join(str(p) for p in paths))
-    return 0

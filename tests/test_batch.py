@@ -24,7 +24,7 @@ import pytest
 import yaml
 from conftest import geometry_dict
 
-from fitmedia import batch
+from fitmedia import batch, cli
 from fitmedia.batch import fit_many, round_seed_and_ml, validate
 from fitmedia.errors import InputError
 from fitmedia.inference.fit import FitOptions
@@ -274,8 +274,8 @@ def _cli(argv: list[str]) -> int:
     """The subcommands as cli.py wires them (add_*_parser, then ``a.func(a)``)."""
     p = argparse.ArgumentParser(prog="fitmedia")
     sub = p.add_subparsers(dest="command", required=True)
-    batch.add_validate_parser(sub)
-    batch.add_fit_many_parser(sub)
+    cli.add_validate_parser(sub)
+    cli.add_fit_many_parser(sub)
     a = p.parse_args([str(x) for x in argv])
     return a.func(a)
 

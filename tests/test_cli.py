@@ -132,8 +132,10 @@ def test_fit_map_only_writes_the_contract(capture, tmp_path, capsys):
     assert "converged" not in r["diagnostics"]
 
 
-def test_console_script_help_is_fast_and_works():
-    """`fitmedia --help` runs as a program (no heavy imports at start-up)."""
+def test_console_script_help_works_without_heavy_imports():
+    """`fitmedia --help` runs as a program and importing the CLI loads neither Mitsuba nor
+    matplotlib (no time is measured here: CI's load varies; tests/test_imports.py checks that
+    building the parser imports no numpy)."""
     res = subprocess.run([sys.executable, "-m", "fitmedia.cli", "--help"], capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 0 and "synth" in res.stdout

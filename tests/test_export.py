@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from fitmedia.errors import InputError
-from fitmedia.export import add_export_parser, export_medium, medium_values
+from fitmedia.cli import add_export_parser
+from fitmedia.export import export_medium, medium_values
 
 CH = ("R", "G", "B")
 # Lowfat Milk-like values (1/mm, undiluted): kappa_t, albedo, g per channel
