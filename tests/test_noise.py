@@ -236,3 +236,26 @@ def test_cli_refuses_a_bracket_noise_block_without_exposure(small_capture, tmp_p
         d["images"][0].update(path=[p, p], exposure_s=[1.0, 0.5])
     code, err = _fit_exit(small_capture, tmp_path, capsys, mutate)
     assert code == 2 and "noise.exposure_s" in err and "images[0]" in err
+
+
+def test_noise_estimate_of_a_bracket(tmp_path, tank_image, rng):
+    """A 2-frame float bracket (1 and 0.1 s, clipped at 65000 with `saturation: 65000`)
+    simulated here with 2 DN per electron and 25 DN^2 read variance: the per-frame camera
+    noise (a, b) comes back within 10 % in every channel, estimated on the pixels merged from
+    both frames (sum of exposures 1.1 s, two reads)."""
+    from fitmedia.images import write_float_tiff
+    from fitmedia.images.noise import estimate_sensor_noise
+
+    a, b, scale = 2.0, 25.0, 4e6  # DN per electron, DN^2, DN per second per image unit
+    paths = []
+    for k, t in enumerate((1.0, 0.1)):
+        frame = a * rng.poisson(scale * t * tank_image / a) + rng.normal(0, np.sqrt(b),
+                                                                         tank_image.shape)
+        paths.append(tmp_path / f"b{k}.tiff")
+        write_float_tiff(paths[-1], np.minimum(frame, 65000.0))
+    entry = ImageEntry(paths=tuple(paths), exposures=(1.0, 0.1), saturation=65000.0)
+    img = load_entry(entry, expected_shape=tank_image.shape[:2])
+    assert np.any(img.exposure < 1.0)  # the bulb is known from the short frame only
+    est = estimate_sensor_noise(img, entry, (0, 1, 2), "images[0]")
+    np.testing.assert_allclose(est.a, a, rtol=0.10)
+    np.testing.assert_allclose(est.b, b, rtol=0.10)
