@@ -71,7 +71,8 @@ def main(paths: list[int]) -> None:
                 sums = b.sum(1)
                 mean, se = b.mean(0), b.std(0, ddof=1) / 4
                 share = sums.mean() / (sums.mean() + s[glow].sum())
-                rows.append(f"{ch}: share {share:.3f}, glow-sum error {sums.std(ddof=1) / 4 / sums.mean():.2%}, "
+                err_sum = sums.std(ddof=1) / 4 / sums.mean()
+                rows.append(f"{ch}: share {share:.3f}, glow-sum error {err_sum:.2%}, "
                             f"median pixel error {np.median(se[mean > 0] / mean[mean > 0]):.0%}")
             paths_total = n * ms.low_shape[0] * ms.low_shape[1] * 3
             print(f"  {n:4d} paths per 4x4 px ({paths_total / 1e6:.2f} M paths): {dt:6.1f} s wall = "

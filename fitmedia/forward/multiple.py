@@ -26,6 +26,7 @@ from scipy import ndimage, sparse
 from ..errors import InputError
 from ..geometry import pixel_grid, trace_to_water
 from ..spec import Camera, Spec
+from .base import check_render_args
 from .ms_paths import PathTracer
 from .single import SingleScattering
 
@@ -33,24 +34,6 @@ DEFAULT_BIN = 4
 DEFAULT_PATHS = 256  # paths per sample pixel and channel
 DEFAULT_BATCHES = 16
 DEFAULT_SMOOTH = 0.0  # Gaussian sigma (sample pixels); 1.0 lowers the noise 3x and the glow sum 0.8 %
-
-
-def _channels(name: str, value, n: int) -> np.ndarray:
-    v = np.asarray(value, dtype=float)
-    v = np.full(n, float(v)) if v.ndim == 0 else v
-    if v.shape != (n,) or not np.all(np.isfinite(v)):
-        raise InputError(f"{name}: expected {n} finite values (one per channel), got {np.asarray(value).tolist()}")
-    return v
-
-
-def _check_medium(kappa_a, kappa_s, g, brightness, n: int):
-    ka, ks, gg, br = (_channels(nm, v, n) for nm, v in
-                      (("kappa_a", kappa_a), ("kappa_s", kappa_s), ("g", g), ("brightness", brightness)))
-    if np.any(ka < 0) or np.any(ks < 0):
-        raise InputError(f"kappa_a {ka.tolist()} and kappa_s {ks.tolist()} must be >= 0 (1/mm)")
-    if np.any(np.abs(gg) >= 1):
-        raise InputError(f"g: got {gg.tolist()}: need -1 < g < 1")
-    return ka, ks, gg, br
 
 
 def _binned_camera(cam: Camera, b: int) -> Camera:
@@ -182,7 +165,7 @@ class MultipleScattering:
         ``single``: the analytic model of the same image and channels (built if None).
         """
         c = len(self.channels)
-        ka, ks, gg, _ = _check_medium(kappa_a, kappa_s, g, 1.0, c)
+        ka, ks, gg, _ = check_render_args(c, kappa_a, kappa_s, g, 1.0)
         single = single or SingleScattering(self.spec, self._image_index, channels=self.channels)
         one = single.render(ka, ks, gg, np.ones(c))
         direct = single.render(ka + ks, np.zeros(c), gg, np.ones(c))
@@ -208,7 +191,7 @@ class MultipleScattering:
                ) -> tuple[np.ndarray, np.ndarray]:
         """The term's image and its standard error, both (H, W, C), units of ForwardModel."""
         c = len(self.channels)
-        ka, ks, gg, br = _check_medium(kappa_a, kappa_s, g, brightness, c)
+        ka, ks, gg, br = check_render_args(c, kappa_a, kappa_s, g, brightness)
         img, err = np.zeros((*self.shape, c)), np.zeros((*self.shape, c))
         for k in range(c):
             kt = ka[k] + ks[k]
@@ -259,7 +242,8 @@ class FullTransport:
         """Rebuild the local model at these parameters (arrays of shape (C,)); 3 traces per
         scattering channel."""
         c = len(self.channels)
-        ka, ks, gg, _ = _check_medium(kappa_a, kappa_s, g, 1.0 if brightness is None else brightness, c)
+        ka, ks, gg, _ = check_render_args(c, kappa_a, kappa_s, g,
+                                          1.0 if brightness is None else brightness)
         local = []
         for k in range(c):
             kt, a = ka[k] + ks[k], (ks[k] / (ka[k] + ks[k]) if ks[k] > 0 else 0.0)
@@ -284,7 +268,7 @@ class FullTransport:
         if self._local is None:
             return True
         c = len(self.channels)
-        ka, ks, gg, _ = _check_medium(kappa_a, kappa_s, g, 1.0, c)
+        ka, ks, gg, _ = check_render_args(c, kappa_a, kappa_s, g, 1.0)
         for k, loc in enumerate(self._local):
             if (loc is None) != (ks[k] <= 0):
                 return True
@@ -298,7 +282,7 @@ class FullTransport:
         the local model (the variance is that of the refresh point's estimate at this
         albedo; the finite differences' own noise is not in it)."""
         c = len(self.channels)
-        ka, ks, gg, br = _check_medium(kappa_a, kappa_s, g, brightness, c)
+        ka, ks, gg, br = check_render_args(c, kappa_a, kappa_s, g, brightness)
         if self._local is None:
             self.refresh(ka, ks, gg)
         img, var = np.zeros((*self.shape, c)), np.zeros((*self.shape, c))
