@@ -84,6 +84,7 @@ IMAGE_SCHEMA = {
         "path": _paths, "exposure_s": _exposures,
         "concentration": {"type": "number", "exclusiveMinimum": 0},
         "dark": _paths, "mask": {"type": "string", "minLength": 1},
+        "flat": {"type": "string", "minLength": 1},
         "light": {"type": "object"}, "camera": {"type": "object"},
         "saturation": _sat, "response": {"enum": ["linear", "srgb"]},
     },
@@ -136,6 +137,7 @@ SCHEMA = {
                 "type": "object", "additionalProperties": False,
                 "required": ["path", "exposure_s"],
                 "properties": {"path": _paths, "exposure_s": _exposures, "dark": _paths,
+                               "flat": {"type": "string", "minLength": 1},
                                "saturation": _sat, "response": {"enum": ["linear", "srgb"]}}}},
         },
         "noise": {"type": "object", "additionalProperties": False,
@@ -200,6 +202,7 @@ class ImageEntry:
     mask: Path | None = None
     saturation: float | None = None
     response: str | None = None
+    flat: Path | None = None  # flat-field image (docs/spec.md, "Flat field")
     camera: Camera | None = None
     light: Light | None = None
 
@@ -321,8 +324,10 @@ def _image_entry(d: dict, base: Path, where: str, fld: str, spec_cam: dict, spec
     if darks and len(darks) not in (1, len(paths)):
         raise SpecError(where, f"{fld}.dark", f"{len(darks)} dark frames for {len(paths)} paths")
     mask = base / d["mask"] if "mask" in d else None
+    flat = base / d["flat"] if "flat" in d else None
     if check_files:
-        for key, lst in (("path", paths), ("dark", darks), ("mask", [mask] if mask else [])):
+        for key, lst in (("path", paths), ("dark", darks), ("mask", [mask] if mask else []),
+                         ("flat", [flat] if flat else [])):
             for p in lst:
                 if not p.is_file():
                     raise SpecError(where, f"{fld}.{key}", f"file not found: {p}")
@@ -340,6 +345,7 @@ def _image_entry(d: dict, base: Path, where: str, fld: str, spec_cam: dict, spec
     return ImageEntry(paths=tuple(paths), exposures=tuple(exps),
                       concentration=float(d.get("concentration", 1.0)), darks=tuple(darks),
                       mask=mask, saturation=d.get("saturation"), response=d.get("response"),
+                      flat=flat,
                       camera=cam, light=light)
 
 

@@ -325,6 +325,27 @@ def read_image(path: str | Path) -> tuple[np.ndarray, float | None]:
     return frame.data, frame.level
 
 
+def _read_flat(path: Path, response: str | None, shape: tuple[int, int],
+               valid: np.ndarray) -> np.ndarray:
+    """A flat-field image (the camera's relative response per pixel and channel, vignetting
+    included) scaled to mean 1 over the ``valid`` pixels of each channel.
+
+    Raises
+    ------
+    ImageError
+        Unreadable, of the wrong size, or not positive at a usable pixel.
+    """
+    flat = linearise(_frame(path, shape, "flat field"), response, path).data.copy()
+    for ci in range(3):
+        f = flat[..., ci][valid[..., ci]]
+        if f.size and not np.all(f > 0):
+            i, j = np.argwhere(valid[..., ci] & ~(flat[..., ci] > 0))[0]
+            raise ImageError(f"{path}: flat field is {flat[i, j, ci]:.3g} at row {i}, column {j} "
+                             f"({'RGB'[ci]}); it must be positive wherever the image is used")
+        flat[..., ci] /= f.mean() if f.size else 1.0
+    return np.where(flat > 0, flat, 1.0)
+
+
 def _read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
     """(H, W) bool, True where the mask file is non-zero in every channel (alpha included)."""
     arr = _read_any(path)
@@ -394,6 +415,8 @@ class LoadedImage:
         (the float type's spacing at the largest value for float files).
     exposures : tuple of float
         The frames' exposure times, s.
+    flat : ndarray of shape (H, W, 3) or None
+        The flat field ``data`` was divided by (mean 1 over the usable pixels), if any.
     """
 
     data: np.ndarray
@@ -406,6 +429,7 @@ class LoadedImage:
     samples: np.ndarray = field(default_factory=lambda: np.ones(3))
     quant_var: float = 0.0
     exposures: tuple[float, ...] = (1.0,)
+    flat: np.ndarray | None = None
 
     def variance_maps(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per-pixel noise model of ``data``: variance = gain_map * mean + read_map.
@@ -421,7 +445,8 @@ class LoadedImage:
         gain_map, read_map : ndarray of shape (H, W, 3)
             With T the pixel's summed exposure over the frames merged into it, N its
             number of reads (frames plus subtracted darks) and n the samples binned
-            into it: gain_map = a / (n T), read_map = N max(b, quant_var) / (n T^2).
+            into it: gain_map = a / (n T), read_map = N max(b, quant_var) / (n T^2), both
+            divided by the flat field (``gain_map``) and its square (``read_map``) if any.
             ``read_map`` is positive: ``b`` is floored at the quantisation variance.
         """
         a = np.broadcast_to(np.asarray(a, float), (3,))
@@ -429,7 +454,8 @@ class LoadedImage:
         t = self.exposure if self.exposure is not None else np.full(self.data.shape,
                                                                     self.exposures[0])
         n = self.reads if self.reads is not None else np.ones(self.data.shape)
-        return a / (self.samples * t), n * b / (self.samples * t * t)
+        f = 1.0 if self.flat is None else self.flat  # data = signal / flat: variance / flat^2
+        return a / (self.samples * t * f), n * b / (self.samples * t * t * f * f)
 
 
 def _frame(path: Path, shape: tuple[int, int], what: str) -> Frame:
@@ -508,6 +534,9 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     reads = np.where(usable, reads, k + (k * k if len(darks) == 1 and k > 1 else k) * bool(darks))
     mask_ok = np.ones(shape, bool) if entry.mask is None else _read_mask(entry.mask, shape)
     valid = usable & mask_ok[..., None]
+    flat = None if entry.flat is None else _read_flat(entry.flat, entry.response, shape, valid)
+    if flat is not None:
+        data = data / flat
     saturated = ~usable[..., chans].all(axis=2)
     n_sat, n_masked = int(np.count_nonzero(saturated)), int(np.count_nonzero(~mask_ok))
     frac = np.count_nonzero(saturated | ~mask_ok) / saturated.size
@@ -520,7 +549,7 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
                          "unusable (use a shorter exposure or an exposure bracket)")
     return LoadedImage(data=data, valid=valid, n_saturated=n_sat, n_masked=n_masked,
                        source=source, exposure=exposure, reads=reads, samples=samples,
-                       quant_var=quant_var, exposures=tuple(exps))
+                       quant_var=quant_var, exposures=tuple(exps), flat=flat)
 
 
 def _merge(entry: ImageEntry, shape: tuple[int, int]

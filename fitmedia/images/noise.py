@@ -281,7 +281,8 @@ def estimate_sensor_noise(img: LoadedImage, entry: ImageEntry, channels: tuple[i
     The fit (:func:`fit_noise`) uses the pixels merged from the most common set of frames
     (same summed exposure T and reads N), where the variance of the normalised image is
     ``a / (n T) * value + N b / (n T^2)`` (``LoadedImage.variance_maps``).  With a dark
-    frame, its own noise variance (:func:`read_variance`) is one more bin at level 0.
+    frame, its own noise variance (:func:`read_variance`) is one more bin at level 0.  A
+    flat field's division is undone first (the noise is the sensor's).
 
     Raises
     ------
@@ -306,13 +307,14 @@ def estimate_sensor_noise(img: LoadedImage, entry: ImageEntry, channels: tuple[i
         if dark is not None:
             b_dark, n_dark = read_variance(dark[..., ci], np.ones(dark.shape[:2], bool), rng=rng)
             known = (nr * max(b_dark * n, img.quant_var) / (n * t * t), n_dark)
+        signal = img.data[..., ci] * (1.0 if img.flat is None else img.flat[..., ci])
         try:
-            fit = fit_noise(img.data[..., ci], v & (t_map == t) & (n_map == nr), rng=rng,
+            fit = fit_noise(signal, v & (t_map == t) & (n_map == nr), rng=rng,
                             dark=known)
         except InputError as exc:
             raise InputError(f"{where}: the noise cannot be estimated in channel {ch} ({exc}); "
                              "give a `noise` block (gain, read_var) or a dark frame") from None
-        top = float(np.max(img.data[..., ci][v]))  # the brightest pixel the fit will weigh
+        top = float(np.max(signal[v]))  # the brightest pixel the fit will weigh
         _check_support(fit, where, ch, max(top, fit.level_hi))
         a[ci], b[ci] = fit.gain * n * t, fit.read_var * n * t * t / nr
     src = "estimated from this image" + ("" if dark is None else
