@@ -1,26 +1,30 @@
 """Vectorised numpy path tracer for the light the analytic model leaves out.
 
-Paths start at the camera (through the front wall, ``geometry.trace_to_water``),
-are forced to scatter once on the camera ray, and then random-walk in the tank:
-free flights sampled with kappa_t, Henyey–Greenstein directions, the five black
-walls and the bulb absorb, the front wall reflects (Fresnel, total internal
-reflection at the glass/air face beyond ~49 degrees in the water).  At every
-scattering vertex the bulb is connected explicitly (next-event estimation):
+Paths start at the camera (through the front wall, ``geometry.trace_to_water``)
+and random-walk in the tank: every vertex is forced onto its segment (the camera
+ray's first two from a mixture of free flight, equiangular and forward-peak
+sampling towards the bulb, later ones by free flight), directions come from a
+mixture of Henyey–Greenstein and a guide towards the bulb, the five black walls
+and the bulb end a segment, the front wall reflects it (Fresnel; total internal
+reflection at the glass/air face beyond ~49 degrees in the water), and paths end
+by Russian roulette.  The bulb's light is connected explicitly:
 
-* directly, by sampling the bulb's visible cap uniformly in solid angle
-  (skipped at the first vertex: that is the analytic single scattering);
-* through one reflection at the water/glass face (the bulb's mirror image is
-  an exact sphere: cap sampling again, weight R_wg);
-* through the glass and one reflection at its outer face (a cone around the
-  chief ray, found by Newton's method, wide enough to hold the shifted image;
-  each sampled ray is traced exactly; weight T_wg^2 R_ga / (1 - R_wg R_ga), the
-  internal reflections summed with the first one's lateral shift).
+* along every segment after the first vertex: the single scattering towards the
+  segment's start, by the analytic model's line integral (exact cap average);
+* at a quarter of the vertices (weight 4), through one reflection at the
+  water/glass face (the bulb's mirror image is an exact sphere: cap sampling,
+  weight R_wg) and through the glass and one reflection at its outer face (a
+  cone around the chief ray, found by Newton's method, wide enough to hold the
+  shifted image; each sampled ray is traced exactly; weight
+  T_wg^2 R_ga / (1 - R_wg R_ga), the internal reflections summed with the first
+  one's lateral shift).
 
-The weights carry no albedo: a vertex of order k contributes albedo^k times the
-stored value, so one trace gives the image for every albedo.  Random numbers are
-drawn per order for every path index (common random numbers): a fixed seed
-makes the estimate a smooth function of kappa_t and g except where a path
-changes its fate (wall, bulb, roulette).
+The weights carry no albedo: a contribution of order k is stored per order and
+multiplied by albedo^k later, so one trace gives the image for every albedo.
+Random numbers are a hash of (seed, order, path, dimension) (common random
+numbers): a fixed seed makes the estimate a smooth function of kappa_t and g
+except where a path changes its fate (wall, bulb, roulette).  See
+docs/multiple_scattering.md.
 """
 
 from __future__ import annotations
@@ -222,10 +226,6 @@ class PathTracer:
         sin2_b = 1.0 - cos_b * cos_b
         ell = d * cos_b - np.sqrt(np.clip(self.r**2 - d * d * sin2_b, 0.0, None))
         return w, 2.0 * np.pi * one_m_cos, ell
-
-    def nee_direct(self, x, v, kt, g, u):
-        w, omega, ell = self._cap(x, self.c, u[:, 0], u[:, 1])
-        return omega * hg_phase(np.einsum("ij,ij->i", w, v), g) * np.exp(-kt * ell)
 
     def _in_face(self, q):
         return (np.abs(q[:, 0]) < self.half[0]) & (np.abs(q[:, 1]) < self.half[1])
