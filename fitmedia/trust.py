@@ -22,7 +22,7 @@ import numpy as np
 CHI2_TAIL = 1e-6
 #: Allowance for model error in chi2/pixel, added to the noise-only limit.  Chosen from
 #: measurements (docs/results.md, "trust"; docs/studies/misfit_study.py).
-MODEL_ERROR_ALLOWANCE = 0.25
+MODEL_ERROR_ALLOWANCE = 0.1
 #: kappa_s and g count as not separately measured when the 90 % interval of log kappa_s' is
 #: narrower than this fraction of the 90 % interval of log kappa_s (docs/results.md).
 SEPARABLE_WIDTH_RATIO = 0.5

@@ -29,7 +29,7 @@ def test_chi2_limit_against_wilson_hilferty():
 
 def test_guard_silent_on_noise_fires_on_misfit(rng):
     """Simulated standardised residuals: 20000 noise-only chi2/pixel draws of N = 480 pixels
-    never reach the limit (their largest is ~1.3 while the limit is 1.59); residuals whose
+    never reach the limit (their largest is ~1.3, the limit 1.44); residuals whose
     variance is 1.7 times the noise model's (a model error) exceed it."""
     n = 480
     noise_only = rng.chisquare(n, size=20000) / n

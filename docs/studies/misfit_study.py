@@ -93,16 +93,18 @@ STUDY = ([("single", "Lowfat Milk", 16.0, s, w) for s in (1, 2) for w in (32, 48
          + [("single", "Espresso", 8.0, 1, 48)]
          + [(how, m, ml, 1, 32) for m, ml in (("Lowfat Milk", 16.0), ("Espresso", 8.0))
             for how in ("mitsuba_ss", "full")]
-         + [("full", "White Grapefruit Juice", 160.0, 1, 32)])
+         + [("full", "White Grapefruit Juice", 160.0, 1, 32)]
+         + [("full", "Lowfat Milk", ml, 1, 32) for ml in (4.0, 1.6)])
 
 
 def study(a) -> None:
     done = set()
     if Path(a.out).exists():
-        done = {(r["how"], r["medium"], r["seed"], r["width"]) for r in map(json.loads, open(a.out))}
+        done = {(r["how"], r["medium"], r["ml"], r["seed"], r["width"])
+                for r in map(json.loads, open(a.out))}
     with open(a.out, "a") as out:
         for how, medium, ml, seed, width in STUDY:
-            if (how, medium, seed, width) in done:
+            if (how, medium, ml, seed, width) in done:
                 continue
             with tempfile.TemporaryDirectory() as tmp:
                 t0 = time.perf_counter()
