@@ -317,7 +317,9 @@ def exact_single_scattering(spec: Spec, x: np.ndarray, y: np.ndarray, kappa_a: f
 def test_mitsuba_matches_exact_finite_bulb_near_the_bulb():
     """Third model: near the bulb (g = 0.9, rays 18-36 mm from it), where a point-direction
     phase function was 3-5 % off, Mitsuba agrees with the exact single-scattering integral of
-    a finite Lambertian sphere (which the analytic model now reproduces to 0.015 %)."""
+    a finite Lambertian sphere.  The analytic model agrees with this (coarse: 12 x 16 cap
+    nodes) quadrature within 0.3 % (measured +0.12 %; with the fine quadrature of
+    tests/test_physics.py, 0.015 %)."""
     pytest.importorskip("fitmedia.forward.single")
     g, sub = 0.9, 4
     spec, a, m, err, h, factor = _pair("bulb", (), g, MILK, BULB_SPP)
@@ -331,5 +333,5 @@ def test_mitsuba_matches_exact_finite_bulb_near_the_bulb():
     msg = (f"{band.sum()} pixels 18-36 mm from the bulb, g={g}: Mitsuba/exact - 1 = "
            f"{100 * m_vs_exact:+.2f} % +- {100 * total_err / exact.sum():.2f} % (MC), "
            f"analytic/exact - 1 = {100 * a_vs_exact:+.2f} %")
-    print(msg)
     assert abs(m_vs_exact) < 3 * total_err / exact.sum() + 0.005, msg
+    assert abs(a_vs_exact) < 0.003, msg
