@@ -49,16 +49,21 @@ def misfit(chi2_per_pixel: float | None, n_pixels: int) -> dict:
             "limit": limit, "ok": bool(chi2_per_pixel <= limit) if known else None}
 
 
-def misfit_reason(ch: str, check: dict, model: str, where: str = "") -> str:
-    """The plain-words reason of a failed :func:`misfit` check."""
+def misfit_reason(ch: str, check: dict, model: str, where: str = "", robust: bool = False
+                  ) -> str:
+    """The plain-words reason of a failed :func:`misfit` check (``robust``: the fit used the
+    Student-t likelihood, whose outliers still count in chi2)."""
     return (f"the model ({model}) does not describe the images{where}: chi2/pixel "
             f"{check['chi2_per_pixel']:.3g} at the best fit in channel {ch}, where the noise "
             f"model allows at most {check['limit']:.3g} ({check['n_pixels']} pixels); the values "
-            f"of channel {ch} are biased by an unknown amount and their intervals do not show it")
+            f"of channel {ch} are biased by an unknown amount and their intervals do not show it"
+            + ("; with --robust, outliers (dust, bubbles) count in chi2 too: if the residual "
+               "image shows only a few of them, the rest of the fit may be fine" if robust
+               else ""))
 
 
-def misfit_checks(chans: dict[str, dict], images: Sequence[dict], model: str
-                  ) -> tuple[dict[str, dict], list[str]]:
+def misfit_checks(chans: dict[str, dict], images: Sequence[dict], model: str, *,
+                  robust: bool = False) -> tuple[dict[str, dict], list[str]]:
     """The guard on every channel (all images together) and, for a series, on every image.
 
     Parameters
@@ -69,6 +74,8 @@ def misfit_checks(chans: dict[str, dict], images: Sequence[dict], model: str
         results.json's ``images``: ``channels.<ch>.chi2_per_pixel_map``, ``n_pixels_used``.
     model : str
         The forward model's name, for the reasons.
+    robust : bool
+        The fit used the Student-t likelihood (the reasons say that outliers count).
 
     Returns
     -------
@@ -89,9 +96,10 @@ def misfit_checks(chans: dict[str, dict], images: Sequence[dict], model: str
         if bad:
             worst = max(bad, key=lambda i: per[i]["chi2_per_pixel"] / per[i]["limit"])
             c["ok"] = False
-            reasons.append(misfit_reason(ch, per[worst], model, f" (worst: image {worst})"))
+            reasons.append(misfit_reason(ch, per[worst], model, f" (worst: image {worst})",
+                                         robust))
         elif c["ok"] is False:
-            reasons.append(misfit_reason(ch, c, model))
+            reasons.append(misfit_reason(ch, c, model, robust=robust))
         checks[ch] = c
     return checks, reasons
 

@@ -55,3 +55,21 @@ def test_laplace_against_samples(rng, corr):
     assert r_lap == pytest.approx(r_smp, rel=0.05)
     assert trust.separable(r_lap, False) is trust.separable(r_smp, False) is (corr == 0.0)
     assert trust.reduced_from_laplace(x, None, names, map_ks, map_g)[1] is None
+
+
+def test_cli_line_prints_kappa_s_reduced_when_not_separable():
+    """`fitmedia fit`'s line for a channel: kappa_s and g with their 90 % intervals when
+    separable; kappa_s' with its interval and the plain-words caveat, and no kappa_s or g
+    value, when not."""
+    entry = {"map": 2.0, "median": 2.1, "q05": 1.0, "q95": 3.0}
+    res = {"channels": ["G"],
+           "parameters": {q: {"G": dict(entry)} for q in ("kappa_a", "kappa_s", "g")},
+           "diagnostics": {"channels": {"G": {"kappa_s_g_separable": True}}}}
+    res["parameters"]["kappa_s_reduced"] = {"G": {"map": 0.5, "median": 0.51, "q05": 0.49,
+                                                  "q95": 0.53, "source": "samples"}}
+    line = trust.value_line(res, "G")
+    assert "kappa_s=2.1 [1, 3]" in line and "g=2.100 [1.000, 3.000]" in line
+    res["diagnostics"]["channels"]["G"]["kappa_s_g_separable"] = False
+    line = trust.value_line(res, "G")
+    assert "kappa_s'=kappa_s(1-g)=0.51 (90 %: 0.49 - 0.53)" in line
+    assert "not separately measured" in line and "kappa_s=" not in line and " g=" not in line

@@ -64,6 +64,10 @@ def test_series_with_one_bad_image():
     verdict = assess({"kappa_s_reduced": {"G": {"map": 1.0}}}, chans, images, "single")
     assert verdict["ok"] is True and verdict["reasons"] == []
     assert chans["G"]["optical_depth_regime"] == "informative"
+    chans, images = _results([9.0])
+    verdict = assess({"kappa_s_reduced": {"G": {"map": 1.0}}}, chans, images, "single",
+                     robust=True)
+    assert verdict["ok"] is False and "with --robust, outliers" in verdict["reasons"][0]
 
 
 def test_fit_exits_1_when_the_guard_fires(monkeypatch, tmp_path, capsys):

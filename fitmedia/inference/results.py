@@ -100,7 +100,7 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
     return {
         "fitmedia_spec": 1,
         "model": options.model,
-        "trust": assess(params, chans, images, options.model),
+        "trust": assess(params, chans, images, options.model, robust=options.robust),
         "units": {"length": "mm", "kappa": "1/mm"},
         "channels": list(spec.channels),
         "parameters": params,
@@ -139,12 +139,13 @@ def _reduced(f: dict, phys: dict) -> tuple[dict, float | None]:
                                 f["map"]["g"])
 
 
-def assess(params: dict, chans: dict[str, dict], images: list[dict], model: str) -> dict:
+def assess(params: dict, chans: dict[str, dict], images: list[dict], model: str, *,
+           robust: bool = False) -> dict:
     """results.json's ``trust`` (docs/results.md): the misfit guard on every channel and image,
     and the channels whose kappa_s and g are not separately measured.  A channel that fails
     the guard gets ``optical_depth_regime`` None: its kappa_t, hence its optical depth, is
     biased by an unknown amount."""
-    checks, reasons = misfit_checks(chans, images, model)
+    checks, reasons = misfit_checks(chans, images, model, robust=robust)
     for ch, c in checks.items():
         if c["ok"] is False:
             chans[ch]["optical_depth_regime"] = None
