@@ -132,7 +132,9 @@ def cmd_demo(a) -> int:
     res = fit(spec, a.out, FitOptions(seed=a.seed, progress=not a.quiet))
     print(f"wrote {Path(a.out) / 'results.json'} and {Path(a.out) / 'report.html'} "
           f"({res['wall_time_s']:.0f} s)")
-    return 0
+    from .trust import print_verdict
+
+    return print_verdict(res)  # 1 when the misfit guard fired
 
 
 def cmd_doctor(a) -> int:
@@ -219,7 +221,8 @@ def add_fit_many_parser(sub) -> None:
 
 
 def cmd_fit_many(a) -> int:
-    """Exit code 0 when every capture was fitted, 2 when some failed (one line each)."""
+    """Exit code 0 when every capture was fitted, 2 when some failed (one line each), else 1
+    when the misfit guard fired on some (their reasons on stderr)."""
     from .batch import fit_many
 
     recs = fit_many(a.specs, a.out, scheduler=a.scheduler, n_workers=a.workers,
@@ -229,8 +232,12 @@ def cmd_fit_many(a) -> int:
             print(f"fitmedia: error: {r['name']}: {r['error']}", file=sys.stderr)
         else:
             print(f"{r['name']}: {r['status']} ({r['out']})")
+            for reason in (r.get("trust") or {}).get("reasons") or []:
+                print(f"fitmedia: doubtful result: {r['name']}: {reason}", file=sys.stderr)
     print(f"wrote {Path(a.out) / 'summary.json'}")
-    return 2 if any(r["status"] == "failed" for r in recs) else 0
+    if any(r["status"] == "failed" for r in recs):
+        return 2
+    return 1 if any((r.get("trust") or {}).get("ok") is False for r in recs) else 0
 
 
 def add_export_parser(sub) -> None:

@@ -117,3 +117,21 @@ def test_guard_on_full_transport_capture(capture, fires, tmp_path, capsys):
         assert res["diagnostics"]["channels"]["G"]["optical_depth_regime"] is None
     else:
         assert check["chi2_per_pixel"] < check["limit"]
+
+
+def test_fit_many_exit_code_carries_the_verdict(monkeypatch, tmp_path, capsys):
+    """`fitmedia fit-many`: 1 when some capture's guard fired (its reason on stderr), 0 when
+    none did, 2 when one failed (fit_many itself replaced by a stub returning records)."""
+    import fitmedia.batch
+
+    bad = {"ok": False, "reasons": ["the model (single) does not describe the images: x"]}
+    recs = [{"name": "a", "out": "o/a", "status": "done", "trust": {"ok": True, "reasons": []}},
+            {"name": "b", "out": "o/b", "status": "done", "trust": bad}]
+    monkeypatch.setattr(fitmedia.batch, "fit_many", lambda *a, **k: recs)
+    argv = ["fit-many", "a.yaml", "b.yaml", "--out", str(tmp_path), "--no-report"]
+    assert main(argv) == 1
+    assert "b: the model (single) does not describe the images" in capsys.readouterr().err
+    recs[1]["trust"] = {"ok": True, "reasons": []}
+    assert main(argv) == 0
+    recs.append({"name": "c", "out": "o/c", "status": "failed", "error": "spec: bad"})
+    assert main(argv) == 2
