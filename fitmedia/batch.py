@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .errors import InputError
-from .util import write_json
+from .util import check_output_dir, write_json
 
 if TYPE_CHECKING:  # pragma: no cover  (imported in the functions: `fitmedia --help` stays fast)
     from .inference.fit import FitOptions
@@ -191,9 +191,10 @@ def _run_round(task: RoundTask) -> dict:
     t0 = time.perf_counter()
     try:
         truth = _read_json(out / "capture" / "truth.json")
-        fitted = _read_json(out / "fit" / "results.json") is not None
+        fitted = _read_json(out / "fit" / "results.json")
         if fitted and truth and truth.get("seed") == task.seed \
-                and truth.get("medium") == task.medium:
+                and truth.get("medium") == task.medium \
+                and not _identity_differs(fitted, out / "capture" / "capture.yaml", task.options):
             scores = score_round(out, task.medium, task.ml)
         else:
             geometry = load_spec(task.geometry, require_images=False)
@@ -202,11 +203,21 @@ def _run_round(task: RoundTask) -> dict:
                                 name=task.medium)
     except InputError as exc:
         return {**record, "status": "failed", "error": str(exc)}
+    results = _read_json(out / "fit" / "results.json") or {}
     record.update(status="done", wall_time_s=time.perf_counter() - t0,
-                  scores=[asdict(s) for s in scores],
-                  trust=_trust_summary(_read_json(out / "fit" / "results.json")))
+                  scores=[asdict(s) for s in scores], trust=_trust_summary(results),
+                  run_identity=results.get("run_identity"))
     write_json(out / "round.json", record)
     return record
+
+
+def _identity_differs(results: dict, spec: str | Path, options: FitOptions) -> list[str]:
+    """What differs between the run identity in an earlier fit's ``results`` and a fit of
+    ``spec`` with ``options`` now (:mod:`fitmedia.inference.identity`); empty: the same."""
+    from .inference.identity import identity_differences
+    from .pipeline import capture_identity
+
+    return identity_differences(results.get("run_identity"), capture_identity(spec, options))
 
 
 def _finished_round(task: RoundTask) -> dict | None:
@@ -336,6 +347,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     options = options or FitOptions()
     names = _check_validate_args(media, rounds, ml, seed, tank_ml, options)
     _check_runner(scheduler, n_workers)
+    out = check_output_dir(out_dir)  # each round then writes its folders atomically
     geo = Path(geometry) if geometry is not None else DEFAULT_GEOMETRY
     if geometry is None and not geo.is_file():
         raise InputError(f"--spec: not given, and the default {geo} is not there")
@@ -349,7 +361,6 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
             raise InputError(f"--optical-depth: got {lo:g} {hi:g}: expected 0 < LO < HI")
         ranges = {n: ml_range_for_optical_depth(geo_spec, n, (lo, hi), tank_ml) for n in names}
     sha = hashlib.sha256(geo.read_bytes()).hexdigest()
-    out = Path(out_dir).resolve()
     tasks, records = [], {}
     for i in range(rounds):
         rseed, rml = round_seed_and_ml(seed, i, ml, ranges[names[i % len(names)]])
@@ -390,7 +401,8 @@ def _summary_record(task: FitTask, results: dict, status: str) -> dict:
     return {"spec": task.spec, "name": task.name, "out": task.out, "status": status,
             "statistic": key, "units": "1/mm (kappa), undiluted", "estimates": est,
             "converged": results.get("diagnostics", {}).get("converged"),
-            "trust": _trust_summary(results), "wall_time_s": results.get("wall_time_s")}
+            "trust": _trust_summary(results), "wall_time_s": results.get("wall_time_s"),
+            "run_identity": results.get("run_identity")}
 
 
 def _trust_summary(results: dict | None) -> dict | None:
@@ -422,7 +434,9 @@ def fit_many(specs: list[str | Path], out_dir: str | Path, *, scheduler: str | N
     specs : list of str or Path
         Capture i writes ``out_dir/<stem>/`` (stem: the spec's file name without suffix), or
         ``out_dir/<i:04d>_<stem>/`` when two specs share a stem.  A folder that already holds
-        a readable results.json is not fitted again.
+        a readable results.json of the same run identity (spec, images, options, version:
+        :mod:`fitmedia.inference.identity`) is not fitted again; one of another identity is
+        an InputError, before any fitting.
     out_dir : str or Path
         Also receives ``summary.json`` (the returned records).
     scheduler, n_workers, options
@@ -444,7 +458,7 @@ def fit_many(specs: list[str | Path], out_dir: str | Path, *, scheduler: str | N
 
     options = options or FitOptions()
     _check_runner(scheduler, n_workers)
-    out = Path(out_dir).resolve()
+    out = check_output_dir(out_dir)  # each capture's fit then writes its folder atomically
     stems = [Path(s).stem for s in specs]
     unique = len(set(stems)) == len(stems)
     inner = replace(options, workers=1, progress=False)
@@ -455,6 +469,10 @@ def fit_many(specs: list[str | Path], out_dir: str | Path, *, scheduler: str | N
         task = FitTask(str(Path(s).resolve()), name, str(out / name), inner, report)
         prior = _read_json(out / name / "results.json")
         if prior is not None and prior.get("parameters") and prior.get("channels"):
+            diff = _identity_differs(prior, task.spec, inner)
+            if diff:
+                raise InputError(f"--out: {task.out} holds a fit of another run (what differs: "
+                                 f"{'; '.join(diff)}); use a new --out folder or remove it")
             records[i] = _summary_record(task, prior, "done earlier")
         else:
             todo.append(task)

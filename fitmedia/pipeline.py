@@ -27,6 +27,14 @@ def check_resumable(out: Path, identity: dict) -> None:
         check_checkpoint(path, identity)
 
 
+def capture_identity(spec_path: str | Path, options: FitOptions) -> dict:
+    """The run identity a fit of ``spec_path`` with ``options`` has (the spec parsed and the
+    images loaded, no fitting): to tell whether an earlier fit's results.json is this one's."""
+    spec = load_spec(spec_path)
+    prep = prepare(spec)
+    return run_identity(spec, prep.images, prep.clear, options)
+
+
 def _remove_other_checkpoints(out: Path, fits: dict[str, dict]) -> None:
     """Remove checkpoints in ``out`` that this finished run did not write (e.g. a second mode
     of g an earlier run into the same folder sampled): each checkpoint left belongs to the

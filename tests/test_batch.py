@@ -283,6 +283,12 @@ def _cli(argv: list[str]) -> int:
 def test_cli_fit_many_exit_code_and_one_line_per_failure(many_run, tmp_path, capsys):
     specs, out, _ = many_run
     shutil.copytree(out, tmp_path / "o")  # the good capture is already fitted there
+    # ... with global_evals 100 (fast), which the CLI cannot set: stamp it as the CLI's run
+    # (default 400), or the rerun refuses it as a fit of another run (tests/test_resume.py)
+    res = tmp_path / "o" / "capture" / "results.json"
+    data = json.loads(res.read_text())
+    data["run_identity"]["options"]["global_evals"] = FitOptions().global_evals
+    res.write_text(json.dumps(data))
     code = _cli(["fit-many", *specs, "--out", tmp_path / "o", "--scheduler", "serial",
                  "--no-mcmc", "--no-report", "--quiet"])
     cap = capsys.readouterr()

@@ -185,9 +185,9 @@ def test_resume_refuses_the_checkpoint_of_another_capture(two_captures, tmp_path
                                                           monkeypatch):
     """The issue's case: Espresso's checkpoint in --out, Lowfat Milk resumed into it.  Refused
     with exit 2 before any fitting, naming the file and what differs (the images; the two
-    specs are equal, as synthesized here: known by construction), the folder left as it was.  The same capture with another option
-    or seed names those; a checkpoint of the same run is accepted (the check passes and the
-    fitting is reached)."""
+    specs are equal, as synthesized here: known by construction), the folder left as it was.
+    The same capture with another option or seed names those; a checkpoint of the same run is
+    accepted (the check passes and the fitting is reached)."""
     a, b = two_captures
     out = tmp_path / "F"
     out.mkdir()
@@ -239,3 +239,43 @@ def test_resume_refuses_an_unusable_checkpoint_up_front(two_captures, tmp_path, 
     assert code == 2
     _one_line(err, "checkpoint_G.npz", words)
     assert _snapshot(out) == before
+
+
+def test_fit_many_reuses_only_a_fit_of_the_same_run(two_channel_free_capture, tmp_path):
+    """fit-many skips a capture whose folder holds its results.json only when the run identity
+    matches: the same options give "done earlier" with the same estimates (and the identity
+    in the record); another seed is refused before any fitting naming the option, and so is
+    the folder of capture A given for capture B (formerly reported as B's)."""
+    from dataclasses import replace
+
+    from fitmedia.batch import fit_many
+    from fitmedia.errors import InputError
+    from fitmedia.inference.fit import FitOptions
+
+    a, b = two_channel_free_capture
+    opts = FitOptions(mcmc=False, global_evals=50, progress=False)
+    first = fit_many([a], tmp_path / "o", scheduler="serial", options=opts, report=False)
+    again = fit_many([a], tmp_path / "o", scheduler="serial", options=opts, report=False)
+    assert [r["status"] for r in first] == ["done"] and [r["status"] for r in again] == \
+        ["done earlier"]
+    assert again[0]["estimates"] == first[0]["estimates"]
+    assert again[0]["run_identity"] == first[0]["run_identity"] is not None
+    with pytest.raises(InputError, match=r"option seed \(0, now 1\)"):
+        fit_many([a], tmp_path / "o", scheduler="serial", options=replace(opts, seed=1),
+                 report=False)
+    (tmp_path / "B").mkdir()
+    b_as_a = tmp_path / "B" / "capture_R.yaml"  # same stem, so the same folder in --out
+    b_as_a.write_text(b.read_text().replace("images/", str(b.parent / "images") + "/"))
+    with pytest.raises(InputError, match="image 0"):
+        fit_many([b_as_a], tmp_path / "o", scheduler="serial", options=opts, report=False)
+
+
+@pytest.fixture(scope="module")
+def two_channel_free_capture(two_captures, tmp_path_factory):
+    """The A and B captures with channel R only (a MAP-only fit in a few seconds)."""
+    out = []
+    for spec in two_captures:
+        one = spec.parent / "capture_R.yaml"
+        one.write_text(spec.read_text() + "channels: [R]\n")
+        out.append(one)
+    return out
