@@ -180,3 +180,25 @@ def test_beer_lambert_bulb_pixels_mitsuba_and_analytic_agree():
                                                                               a[core].mean())
     ref = _reference_pixel(spec, 16.0, 12.0, ka, ks, gg)
     assert a[11:13, 15:17].mean() == pytest.approx(ref, rel=2e-3)
+
+
+def test_medium_coefficients_follow_their_definitions():
+    """Definitions (CAPTURE_SPEC.md): kappa_t = kappa_a + kappa_s, albedo = kappa_s / kappa_t;
+    diluting to concentration c scales kappa_a and kappa_s by c and leaves g.  Reference: the
+    bundled published table (Narasimhan et al. 2006) read here with the csv module."""
+    import csv
+    from importlib import resources
+
+    from fitmedia.medium import medium_by_name
+
+    text = resources.files("fitmedia.data").joinpath("narasimhan2006_undiluted.csv").read_text()
+    rows = {r["medium"]: r for r in csv.DictReader(text.splitlines())}
+    for name in ("Lowfat Milk", "Espresso", "Merlot"):
+        row, m = rows[name], medium_by_name(name)
+        ka, ks, g = (np.array([float(row[f"{q}_{c}"]) for c in "RGB"])
+                     for q in ("kappa_a", "kappa_s", "g"))
+        np.testing.assert_allclose(m.kappa_t, ka + ks, rtol=1e-15)
+        np.testing.assert_allclose(m.albedo, ks / (ka + ks), rtol=1e-15)
+        d = m.scaled(16 / 23000)
+        np.testing.assert_allclose([d.kappa_a, d.kappa_s, d.g], [ka * 16 / 23000,
+                                                                 ks * 16 / 23000, g], rtol=1e-15)
