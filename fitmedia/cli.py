@@ -273,7 +273,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tank-ml", type=_finite, default=23000.0, help="water in the tank, ml")
     s.add_argument("--out", type=_out_dir, required=True)
     s.add_argument("--seed", type=_seed, default=0)
-    s.add_argument("--model", choices=["single", "full"], default="single")
+    s.add_argument("--model", choices=["single", "full", "hybrid"], default="single",
+                   help="single: analytic orders 0-1; full: Mitsuba 3, all orders; hybrid: "
+                        "analytic orders 0-1 plus fitmedia's own multiple-scattering term")
     s.add_argument("--spp", type=_positive_int, default=256, help="samples per pixel (full)")
     s.add_argument("--brightness", type=_finite, nargs="+",
                    help="bulb radiance or spot intensity (image units)")
@@ -284,7 +286,10 @@ def build_parser() -> argparse.ArgumentParser:
     f = sub.add_parser("fit", help="fit a capture and write results.json and report.html")
     f.add_argument("spec")
     f.add_argument("--out", type=_out_dir, required=True)
-    f.add_argument("--model", choices=["single"], default="single")
+    f.add_argument("--model", choices=["single", "full", "auto"], default="single",
+                   help="single: analytic single scattering; full: plus the multiple-scattering "
+                        "term, refreshed around the MAP; auto: full when the term's share of the "
+                        "glow at the single-scattering MAP is above 2 %%")
     f.add_argument("--seed", type=_seed, default=0)
     f.add_argument("--no-mcmc", action="store_true", help="MAP only, no posterior sampling")
     f.add_argument("--no-report", action="store_true")

@@ -45,8 +45,16 @@ def _render(spec: Spec, index: int | None, medium: Medium, brightness: np.ndarra
         from .forward.mitsuba import MitsubaModel
 
         m = MitsubaModel(spec, 0 if index is None else index, spp=spp, seed=seed, channels=CHANNELS)
+    elif model == "hybrid":  # analytic single scattering + fitmedia's own multiple-scattering term
+        from .forward.multiple import MultipleScattering
+        from .forward.single import SingleScattering
+
+        ss = SingleScattering(spec, index, channels=CHANNELS, supersample=2)
+        ms = MultipleScattering(spec, index, channels=CHANNELS, bin=1, n_paths=max(spp, 16))
+        return ss.render(medium.kappa_a, medium.kappa_s, medium.g, brightness) + \
+            ms.render(medium.kappa_a, medium.kappa_s, medium.g, brightness, seed=seed)[0]
     else:
-        raise InputError(f"--model: expected 'single' or 'full', got {model!r}")
+        raise InputError(f"--model: expected 'single', 'full' or 'hybrid', got {model!r}")
     return m.render(medium.kappa_a, medium.kappa_s, medium.g, brightness)
 
 

@@ -104,6 +104,34 @@ def misfit_checks(chans: dict[str, dict], images: Sequence[dict], model: str, *,
     return checks, reasons
 
 
+#: a full-transport MAP that moves by more than this many posterior sd when the multiple-
+#: scattering term is traced with other random numbers has intervals too narrow to trust
+SEED_SHIFT_SD = 1.0
+
+
+def transport_reasons(chans: dict[str, dict]) -> list[str]:
+    """Plain-words reasons from the full-transport fit of each channel (results.json's
+    ``diagnostics.channels.<ch>.multiple_scattering``, inference/full.py): the refreshes of the
+    multiple-scattering term did not settle, or another realisation of the term moves the
+    values by more than ``SEED_SHIFT_SD`` posterior sd."""
+    reasons = []
+    for ch, info in chans.items():
+        ms = info.get("multiple_scattering") or {}
+        if ms.get("converged") is False:
+            reasons.append(
+                f"the full-transport fit of channel {ch} did not settle: after "
+                f"{ms['refreshes']} refreshes of the multiple-scattering term the best fit still "
+                f"moved by {ms['moves_sd'][-1]:.2g} posterior sd; the values of channel {ch} are "
+                "uncertain by more than their intervals show")
+        shift = ms.get("seed_shift_sd")
+        if shift is not None and not shift <= SEED_SHIFT_SD:
+            reasons.append(
+                f"the multiple-scattering term's own Monte Carlo error moves the values of channel "
+                f"{ch} by {shift:.2g} posterior sd (the term traced again with other random "
+                "numbers); their intervals do not include that error")
+    return reasons
+
+
 # ---------------------------------------------------------------------------------------------
 # kappa_s' = kappa_s (1 - g)
 

@@ -75,9 +75,18 @@ class Prepared:
     noise_per_image: dict[str, dict] = field(default_factory=dict)  # results.json noise.per_image
 
 
+#: the forward models that ``--model`` names (inference/full.py: full and auto)
+MODELS = ("single", "full", "auto")
+
+
 def _model(spec: Spec, image_index: int | None, channel: str, options: FitOptions):
-    if options.model != "single":
-        raise InputError(f"--model: {options.model!r} is not available yet; use 'single'")
+    """The analytic model of one image and channel: every fit starts with it; ``full`` and
+    ``auto`` wrap it in the full-transport model after the single-scattering MAP."""
+    if options.model not in MODELS:
+        raise InputError(f"--model: {options.model!r} is not one of {', '.join(MODELS)}")
+    if options.model != "single" and spec.light.type != "bulb":
+        raise InputError(f"--model {options.model}: the multiple-scattering term is implemented "
+                         "for light.type bulb only; use --model single for a spot")
     from ..forward.single import SingleScattering
 
     return SingleScattering(spec, image_index, channels=(channel,))
@@ -308,6 +317,11 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     problem.adapt(best.x)
     res = find_map(problem.log_posterior, best.x, space.lower, space.upper, global_evals=0)
     res.n_evals += n_evals
+    transport: dict = {}  # --model full / auto: what was used (_full_transport)
+    if options.model != "single":
+        res, transport = _full_transport(problem, space, res, spec, channel, options, seed)
+        if transport["model_used"] == "full":
+            alt = None  # the other g mode was judged with single scattering only
     other_mode = None if alt is None else {
         "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
         "delta_log_posterior": float(alt.log_posterior - res.log_posterior)}
@@ -316,7 +330,8 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
            "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
            "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
            "chi2_images": problem.chi2_images(res.x),
-           "free_brightness": free, "space": space, "other_g_mode": other_mode}
+           "valid_images": [o.valid for o in problem.obs],
+           "free_brightness": free, "space": space, "other_g_mode": other_mode, **transport}
     if options.mcmc:
         two = other_mode is not None and other_mode["delta_log_posterior"] > -OTHER_MODE_DELTA
         # with two modes each chain keeps to its own sign of g, so that the modes' masses can
@@ -337,6 +352,33 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
                                           checkpoint, [seed, CHANNELS.index(channel)], channel,
                                           other_mode, identity))
     return out
+
+
+def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec,
+                    channel: str, options: FitOptions, seed: int) -> tuple:
+    """``--model full`` / ``auto`` from the single-scattering MAP ``res``: the multiple-
+    scattering share there, and (full, or auto above ``AUTO_SHARE``) the full-transport MAP
+    and how far another realisation of the term moves it (inference/full.py).  Returns the
+    MAP and the fields of ``fit_channel``'s result that say what was used."""
+    from .full import AUTO_SHARE, ms_images, ms_share, refine_map, seed_shift, use_full_transport
+
+    # the term's random numbers: streams of their own, so the chains' draws do not move
+    ms_seed, check_seed = (int(s) for s in np.random.default_rng(
+        [seed, CHANNELS.index(channel), 5]).integers(2**31, size=2))
+    share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
+    out = {"model_used": "single", "ms_share_single_map": share}
+    if options.model == "auto" and max(share) <= AUTO_SHARE:
+        out.update(ms_share=share, ms_share_se=share_se)
+        return res, out
+    use_full_transport(problem, spec, channel, seed=ms_seed)
+    res, info = refine_map(problem, space, res)
+    share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
+    out.update(model_used="full", ms_share=share, ms_share_se=share_se,
+               full_refreshes=info.refreshes, full_moves_sd=info.moves_sd,
+               full_converged=info.converged,
+               ms_seed_shift_sd=seed_shift(problem, space, res, spec, channel, seed=check_seed),
+               ms_images=ms_images(problem, res.x))
+    return res, out
 
 
 def albedo_redraw(space: ParameterSpace, x_map: np.ndarray, cov: np.ndarray | None) -> Redraw:

@@ -92,11 +92,32 @@ class ChannelProblem:
             g = o.gain_v if o.gain_v is not None else np.full(len(o.values), float(self.gain))
             r = o.read_v if o.read_v is not None else np.full(len(o.values), float(self.read_var))
             self._noise.append((g, np.maximum(r, quantisation_var(o.values))))
+        # per observation: the forward model's own (Monte Carlo) variance per used pixel,
+        # set by refresh_models (0 for the analytic model)
+        self._model_var: list[np.ndarray | float] = [0.0] * len(observations)
 
     def variance(self, k: int, m: np.ndarray) -> np.ndarray:
         """Noise variance of observation ``k``'s used pixels at model values ``m``."""
         g, r = self._noise[k]
-        return g * np.maximum(m, 0.0) + r
+        return g * np.maximum(m, 0.0) + r + self._model_var[k]
+
+    def refresh_models(self, u: np.ndarray) -> None:
+        """Rebuild the local model of every Monte Carlo forward model (``refresh``, as
+        :class:`fitmedia.forward.multiple.FullTransport` has) at the parameters ``u``, and
+        take its Monte Carlo variance there into the likelihood.  That variance is inflated by
+        the camera pixels per traced sample pixel (``bin**2``): they share one error, which
+        independent per-pixel variances would count that many times (inference/full.py)."""
+        p = self.space.to_params(u)
+        b = p.brightness if self.space.free_brightness else self.brightness
+        for k, o in enumerate(self.obs):
+            refresh = getattr(o.model, "refresh", None)
+            if refresh is None:
+                continue
+            medium = ([o.concentration * p.kappa_a + self.water_kappa_a],
+                      [o.concentration * p.kappa_s], [p.g], [b])
+            refresh(*medium)
+            _, var = o.model.ms_part(*medium)
+            self._model_var[k] = var[..., 0].ravel()[o.flat_idx] * o.model.ms.bin ** 2
 
     def adapt(self, u: np.ndarray) -> None:
         """Tune the forward models' quadrature to the parameters ``u`` (and keep it fixed).
@@ -105,7 +126,8 @@ class ChannelProblem:
         """
         p = self.space.to_params(u)
         for o in self.obs:
-            freeze = getattr(o.model, "freeze_nodes", None)
+            # a full-transport model's quadrature is that of its analytic part
+            freeze = getattr(getattr(o.model, "single", o.model), "freeze_nodes", None)
             if freeze is not None:
                 freeze(o.concentration * p.kappa_t + self.water_kappa_a, p.g)
 

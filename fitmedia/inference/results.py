@@ -11,7 +11,7 @@ import numpy as np
 from .. import __version__
 from ..regimes import regime, tank_optical_depths
 from ..spec import CHANNELS
-from ..trust import (misfit_checks, not_separable_note, reduced_from_laplace,
+from ..trust import (misfit_checks, transport_reasons, not_separable_note, reduced_from_laplace,
                      reduced_from_samples, separable)
 from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
@@ -72,6 +72,14 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
                         kappa_s_consistent_with_zero=bool(ks["q05"] < 1e-3 * ks["q95"]))
             if "modes" in f:
                 info["g_modes"] = f["modes"]
+        if "model_used" in f:  # --model full / auto (inference/full.py)
+            info["model_used"] = f["model_used"]
+            info["multiple_scattering"] = {
+                "share": f.get("ms_share"), "share_se": f.get("ms_share_se"),
+                "share_at_single_scattering_map": f.get("ms_share_single_map"),
+                **({"refreshes": f["full_refreshes"], "converged": f["full_converged"],
+                    "moves_sd": f["full_moves_sd"], "seed_shift_sd": f["ms_seed_shift_sd"]}
+                   if f["model_used"] == "full" else {})}
         params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys)
         info.update(kappa_s_reduced_width_ratio=ratio, kappa_s_g_separable=separable(
             ratio, info.get("kappa_s_consistent_with_zero")))
@@ -95,12 +103,17 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
             c2, n = fits[ch]["chi2_images"][i]
             per[ch] = {"n_pixels_used": n, "chi2_per_pixel_map": c2 / max(n, 1),
                        "optical_depth_light_to_wall": taus[ch][i]}
+            if fits[ch].get("ms_share") is not None:
+                per[ch]["multiple_scattering_share"] = fits[ch]["ms_share"][i]
         images.append({"path": [str(p) for p in entry.paths], "concentration": entry.concentration,
                        "n_saturated": im.n_saturated, "n_masked": im.n_masked, "channels": per})
+    used = [chans[c].get("model_used", options.model) for c in spec.channels]
+    model_used = "full" if "full" in used else "single"
     return {
         "fitmedia_spec": 1,
         "model": options.model,
-        "trust": assess(params, chans, images, options.model, robust=options.robust),
+        "model_used": model_used,
+        "trust": assess(params, chans, images, model_used, robust=options.robust),
         "units": {"length": "mm", "kappa": "1/mm"},
         "channels": list(spec.channels),
         "parameters": params,
@@ -146,6 +159,7 @@ def assess(params: dict, chans: dict[str, dict], images: list[dict], model: str,
     the guard gets ``optical_depth_regime`` None: its kappa_t, hence its optical depth, is
     biased by an unknown amount."""
     checks, reasons = misfit_checks(chans, images, model, robust=robust)
+    reasons += transport_reasons(chans)
     for ch, c in checks.items():
         if c["ok"] is False:
             chans[ch]["optical_depth_regime"] = None

@@ -1,0 +1,133 @@
+"""Full transport in the fit (``--model full`` / ``auto``, fitmedia/inference/full.py).
+
+* The refresh loop, through a stub full-transport model whose "multiple scattering" is an
+  exact analytic image (no Monte Carlo): a round trip that the single-scattering model cannot
+  make (its MAP is far off) and the loop must.
+* ``--model auto`` keeps single scattering where the multiple-scattering share is below
+  ``AUTO_SHARE`` (a thin Merlot capture) and switches on a Mitsuba full-transport milk capture,
+  whose fit must then describe the images better than single scattering does.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from conftest import make_spec
+from fitmedia.cli import main
+from fitmedia.forward.single import SingleScattering
+from fitmedia.inference.full import AUTO_SHARE, MOVE_TOL_SD, refine_map
+from fitmedia.inference.likelihood import ChannelProblem, Observation
+from fitmedia.inference.optimize import find_map
+from fitmedia.inference.params import ChannelParams, ParameterSpace
+
+DATA = Path(__file__).resolve().parent / "data" / "misfit"
+
+
+class StubFullTransport:
+    """A full-transport stand-in: the analytic single scattering plus 0.8 x albedo x its own
+    order-1 glow, computed exactly (an analytic image with the interface of
+    fitmedia.forward.multiple.FullTransport: refresh, ms_part, ms.bin, single)."""
+
+    def __init__(self, single: SingleScattering):
+        self.single, self.shape, self.support = single, single.shape, single.support
+        self.channels = single.channels
+        self.ms = SimpleNamespace(bin=1)
+        self.refreshes = 0
+
+    def refresh(self, kappa_a, kappa_s, g, brightness=None) -> None:
+        self.refreshes += 1
+
+    def ms_part(self, kappa_a, kappa_s, g, brightness):
+        ka, ks = np.asarray(kappa_a, float), np.asarray(kappa_s, float)
+        glow = self.single.render(ka, ks, g, brightness) - \
+            self.single.render(ka + ks, np.zeros_like(ks), g, brightness)
+        term = 0.8 * (ks / (ka + ks)) * glow
+        return term, np.zeros_like(term)
+
+    def render(self, kappa_a, kappa_s, g, brightness):
+        return self.single.render(kappa_a, kappa_s, g, brightness) + \
+            self.ms_part(kappa_a, kappa_s, g, brightness)[0]
+
+
+def _sd(res, j: int) -> float:
+    return float(np.sqrt(res.cov[j, j]))
+
+
+def test_refresh_loop_recovers_a_stub_full_transport_capture(rng):
+    """Round trip through the refresh loop: data rendered by the stub (single + exact extra
+    glow) with Poisson-Gaussian-like noise; the single-scattering MAP misses kappa_t or g by
+    more than 4 of its sd (negative control: the extra glow matters), the loop's MAP finds
+    both within 4 sd, and the loop settles."""
+    spec = make_spec(width=32, height=24)
+    ka, ks, g, b = 0.0004, 0.012, 0.85, 1.0
+    single = SingleScattering(spec, None, channels=("G",))
+    stub = StubFullTransport(single)
+    clean = stub.render([ka], [ks], [g], [b])[..., 0]
+    gain, read = 2e-5, 1e-9
+    data = clean + rng.normal(0.0, np.sqrt(gain * clean + read))
+    obs = [Observation(single, data, single.support, 1.0)]
+    space = ParameterSpace(free_brightness=False, brightness_guess=b)
+    problem = ChannelProblem(obs, space, b, (gain, read))
+    truth = space.to_vector(ChannelParams(ka + ks, ks / (ka + ks), g, None))
+    problem.adapt(truth)
+    res = find_map(problem.log_posterior, truth, space.lower, space.upper, global_evals=0)
+    off_single = max(abs(res.x[j] - truth[j]) / _sd(res, j) for j in (0, 2))
+    assert off_single > 4, f"single-scattering MAP only {off_single:.2g} sd off: no control"
+    obs[0].model = stub
+    full, info = refine_map(problem, space, res)
+    assert info.converged and info.moves_sd[-1] < MOVE_TOL_SD
+    assert stub.refreshes == info.refreshes >= 2
+    for j in (0, 2):
+        assert abs(full.x[j] - truth[j]) < 4 * _sd(full, j), (j, full.x, truth)
+
+
+def _fit(spec: Path, out: Path, *extra: str) -> tuple[int, dict]:
+    rc = main(["fit", str(spec), "--out", str(out), "--no-mcmc", "--no-report", "--quiet",
+               *extra])
+    return rc, json.loads((out / "results.json").read_text())
+
+
+def test_auto_stays_single_on_a_thin_merlot(tmp_path):
+    """A thin Merlot dilution (kappa_s only in R, 0 in G and B) scatters too little for the
+    multiple-scattering term to matter: ``--model auto`` keeps single scattering and reports
+    the share (from the tracer) below AUTO_SHARE in every channel."""
+    geom = tmp_path / "geom.yaml"
+    import yaml
+
+    from conftest import geometry_dict
+    geom.write_text(yaml.safe_dump(geometry_dict(24, 18)))
+    assert main(["synth", str(geom), "--medium", "Merlot", "--ml", "200", "--seed", "3",
+                 "--out", str(tmp_path / "cap")]) == 0
+    rc, res = _fit(tmp_path / "cap" / "capture.yaml", tmp_path / "fit", "--model", "auto")
+    assert res["model_used"] == "single"
+    for ch, info in res["diagnostics"]["channels"].items():
+        assert info["model_used"] == "single"
+        share = info["multiple_scattering"]["share"][0]
+        assert 0.0 <= share <= AUTO_SHARE, (ch, share)
+
+
+@pytest.mark.slow
+def test_auto_switches_on_a_mitsuba_milk_capture(tmp_path):
+    """Lowfat Milk 16 ml rendered with all orders by Mitsuba 3 (tests/data/misfit/milk_full,
+    an independent renderer): ``--model auto`` measures a multiple-scattering share far above
+    AUTO_SHARE at the single-scattering MAP (Mitsuba's own share at this dilution: 0.605 in G,
+    docs/multiple_scattering.md), switches to full transport, and the full model describes the
+    images better than single scattering does (chi2/pixel at the MAP)."""
+    cap = tmp_path / "cap"
+    shutil.copytree(DATA / "milk_full", cap)
+    _, single = _fit(cap / "capture.yaml", tmp_path / "single", "--model", "single")
+    rc, auto = _fit(cap / "capture.yaml", tmp_path / "auto", "--model", "auto")
+    ms = auto["diagnostics"]["channels"]["G"]["multiple_scattering"]
+    assert auto["model_used"] == "full"
+    assert 0.45 < ms["share_at_single_scattering_map"][0] < 0.75
+    chi2 = {k: r["diagnostics"]["channels"]["G"]["chi2_per_pixel"]
+            for k, r in (("single", single), ("auto", auto))}
+    assert chi2["auto"] < 0.6 * chi2["single"], chi2
+    # what is not yet right is said: exit 1 whenever trust.ok is False
+    assert (rc == 1) == (not auto["trust"]["ok"])
