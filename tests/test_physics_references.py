@@ -202,3 +202,22 @@ def test_medium_coefficients_follow_their_definitions():
         d = m.scaled(16 / 23000)
         np.testing.assert_allclose([d.kappa_a, d.kappa_s, d.g], [ka * 16 / 23000,
                                                                  ks * 16 / 23000, g], rtol=1e-15)
+
+
+def test_box_filter_correction_moves_towards_the_footprint_average():
+    """The pixel value is the average over its footprint.  Reference: the plain midpoint rule
+    with 8 x 8 samples per pixel (error laplacian / 1536, no correction term).  One sample per
+    pixel plus the laplacian / 24 correction is at least 10x closer to it than the bare centre
+    value, over the glow pixels where the correction is used (median; measured 9e-5 against
+    4.0e-3, and 8.2e-3 with the correction's sign flipped)."""
+    spec = make_spec()
+    args = (2e-3, 0.03, 0.8, 1.0)
+    ref = SingleScattering(spec, supersample=8, box_filter=False).render(*args)[..., 0]
+    model = SingleScattering(spec)
+    centre = SingleScattering(spec, box_filter=False).render(*args)[..., 0]
+    corrected = model.render(*args)[..., 0]
+    use = model._smooth & (ref > 1e-3 * ref.max())
+    assert use.sum() > 50
+    err_c = np.median(np.abs(corrected[use] / ref[use] - 1))
+    err_0 = np.median(np.abs(centre[use] / ref[use] - 1))
+    assert err_c < err_0 / 10, (err_c, err_0)
