@@ -74,6 +74,21 @@ def test_absorbing_slab_is_fresnel_and_beer():
     assert abs(out["T"] - t_ref) < 4 * out["T_err"] + 1e-4, (out, t_ref)
 
 
+def test_diffusion_length_is_the_textbook_one():
+    """The standard diffusion-theory length 1 / mu_eff, mu_eff = sqrt(3 mu_a (mu_a + mu_s (1 - g)))
+    (the reduced scattering mu_s (1 - g)), in mean free paths (kappa_t = 1); the semi-infinite
+    slab is 100 mean free paths plus 40 of these lengths.  (A 1 + g here, mutant L3, left every
+    reference row within its tolerance: g = 0 there, or the slab finite.)"""
+    from fitmedia.slab import diffusion_length
+
+    for albedo, g in ((0.99, 0.9), (0.5, 0.0), (0.9, -0.3)):
+        ka, ks = 1 - albedo, albedo
+        ref = 1 / math.sqrt(3 * ka * (ka + ks * (1 - g)))
+        assert diffusion_length(albedo, g) == pytest.approx(ref, rel=1e-12)
+        assert semi_infinite_thickness(albedo, g) == pytest.approx(100 + 40 * ref, rel=1e-12)
+    assert diffusion_length(1.0, 0.5) == math.inf
+
+
 def test_semi_infinite_thickness_is_thick_enough_and_bounded():
     assert semi_infinite_thickness(0.95, 0.0) > 100
     with pytest.raises(InputError, match="albedo"):
