@@ -74,3 +74,28 @@ def test_fitter_maximises_the_posterior_not_the_likelihood(monkeypatch):
                       FitOptions(mcmc=False, progress=False, global_evals=200))
     np.testing.assert_allclose(out["x_map"], ref, rtol=0, atol=2e-4)
     assert out["map"]["g"] == pytest.approx(np.tanh(ref[2]), abs=2e-4)
+
+
+def test_parameter_vector_maps_to_the_physical_values():
+    """Definitions (docs/inference.md), written out here: kappa_t = e^u0, albedo = 1 / (1 +
+    e^-u1), kappa_s = kappa_t albedo, kappa_a = kappa_t (1 - albedo), g = tanh u2, brightness
+    e^u3; its prior normal in u3 around the calibration (sd = the relative error): one sd away
+    costs 1/2 in log density."""
+    from fitmedia.inference.params import ParameterSpace
+
+    space = ParameterSpace(free_brightness=True, brightness_guess=2.0, brightness_rel_sd=0.1)
+    u = np.array([[np.log(0.02), 1.3, 0.7, np.log(2.5)], [np.log(5.0), -2.0, -0.4, np.log(1.9)]])
+    kt, alb = np.exp(u[:, 0]), 1 / (1 + np.exp(-u[:, 1]))
+    ref = {"kappa_t": kt, "albedo": alb, "kappa_s": kt * alb, "kappa_a": kt * (1 - alb),
+           "g": np.tanh(u[:, 2]), "brightness": np.exp(u[:, 3])}
+    phys = space.physical_samples(u)
+    for q, v in ref.items():
+        np.testing.assert_allclose(phys[q], v, rtol=1e-12, err_msg=q)
+    p = space.to_params(u[0])
+    np.testing.assert_allclose([p.kappa_t, p.albedo, p.kappa_s, p.kappa_a, p.g, p.brightness],
+                               [ref[q][0] for q in ("kappa_t", "albedo", "kappa_s", "kappa_a",
+                                                    "g", "brightness")], rtol=1e-12)
+    np.testing.assert_allclose(space.to_vector(p), u[0], rtol=1e-12)
+    at = np.array([np.log(0.02), 1.3, 0.7, np.log(2.0)])
+    off = at + np.array([0, 0, 0, 0.1])
+    assert space.log_prior(off) - space.log_prior(at) == pytest.approx(-0.5, rel=1e-12)
