@@ -99,3 +99,27 @@ def test_parameter_vector_maps_to_the_physical_values():
     at = np.array([np.log(0.02), 1.3, 0.7, np.log(2.0)])
     off = at + np.array([0, 0, 0, 0.1])
     assert space.log_prior(off) - space.log_prior(at) == pytest.approx(-0.5, rel=1e-12)
+
+
+def test_gaussian_log_likelihood_is_the_normal_density():
+    """Independent reference: scipy's normal log density with the noise model's variance at the
+    model (gain * model + read_var), summed over the pixels, equals the problem's Gaussian log
+    likelihood up to the constant N log(2 pi) / 2 -- at two parameter points, so that a term
+    dropped from the variance's normalisation shows."""
+    from scipy.stats import norm
+
+    from fitmedia.inference.likelihood import ChannelProblem, Observation
+    from fitmedia.inference.params import ParameterSpace
+
+    stub = _StubModel()
+    rng = np.random.default_rng(3)
+    data = 1.0 + rng.random((3, N_PIX))
+    gain, read = 0.3, 0.05
+    problem = ChannelProblem([Observation(stub, data, np.ones((3, N_PIX), bool), 1.0)],
+                             ParameterSpace(), 1.0, (gain, read))
+    for u in (np.array([np.log(5.0), 1.3, 0.7]), np.array([np.log(3.0), 0.4, 1.1])):
+        kt, alb = np.exp(u[0]), 1 / (1 + np.exp(-u[1]))
+        m = stub.render(kt * (1 - alb), kt * alb, np.tanh(u[2]), 1.0)[..., 0]
+        assert np.all(m > 0)
+        ref = norm.logpdf(data, m, np.sqrt(gain * m + read)).sum() + 0.5 * m.size * np.log(2 * np.pi)
+        assert problem.log_likelihood(u) == pytest.approx(ref, rel=1e-12, abs=1e-9)
