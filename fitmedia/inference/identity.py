@@ -57,7 +57,8 @@ def run_identity(spec: Spec, images: list[LoadedImage], clear: LoadedImage | Non
         comments and key order do not matter, every value does.
     images, clear : LoadedImage
         The loaded, exposure-normalised data and validity masks are hashed (what the fit
-        sees), one hash per image entry so a message can name the image.
+        sees), one hash per image entry so a message can name the image (its path
+        relative to the spec's folder; only the hashes are compared).
     options : FitOptions
         Every field except :data:`FREE_OPTIONS`.
 
@@ -74,13 +75,23 @@ def run_identity(spec: Spec, images: list[LoadedImage], clear: LoadedImage | Non
         "format": IDENTITY_FORMAT,
         "fitmedia_version": __version__,
         "spec_sha256": _sha256_json(spec.raw),
-        "images": [{"path": ", ".join(str(p) for p in e.paths),
+        "images": [{"path": ", ".join(_relative(p, spec.source) for p in e.paths),
                     "sha256": array_sha256(im.data, im.valid)}
                    for e, im in zip(spec.images, images)],
         "clear_water_sha256": None if clear is None else array_sha256(clear.data, clear.valid),
         "model": options.model,
         "options": json.loads(json.dumps(opts)),
     }
+
+
+def _relative(path, spec_source: str) -> str:
+    """``path`` relative to the spec's folder (as a spec names it: the identity of a capture
+    does not depend on where its folder is), or as it is when it is elsewhere."""
+    import os
+    from pathlib import Path
+
+    rel = os.path.relpath(Path(path).absolute(), Path(spec_source).absolute().parent)
+    return str(path) if rel.startswith("..") else rel
 
 
 def identity_differences(stored: Any, current: dict) -> list[str]:
