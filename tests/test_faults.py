@@ -289,3 +289,61 @@ def test_kill_9_of_a_2_worker_fit_then_resume(two_channel_capture, tmp_path, see
     assert res.returncode == 0, res.stderr
     _same_results(out, whole)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["killed"]
+
+
+# ---------------------------------------------------------------------------------------------
+# validate on Dask: a worker process killed mid-round
+
+
+def _validate_cmd(geo, out, *extra):
+    return [sys.executable, "-m", "fitmedia.cli", "validate", "--rounds", "2", "--media",
+            "Espresso", "--spec", str(geo), "--out", str(out), "--seed", "3", "--quiet",
+            "--max-steps", "100", "--n-tau", "1e6", *extra]
+
+
+def _round_records(out: Path) -> list[dict]:
+    recs = [json.loads((d / "round.json").read_text()) for d in sorted(out.glob("round_*"))]
+    for r in recs:
+        r.pop("wall_time_s")
+    return recs
+
+
+@pytest.mark.slow
+def test_validate_survives_a_killed_dask_worker(geo, tmp_path, seed):
+    """`kill -9` of one of the 2 Dask worker processes (chosen at random, seeded) while both
+    rounds are being fitted: the command finishes (Dask reruns the round), the rerun of the
+    command redoes nothing, no round is lost or duplicated, and the coverage table and the
+    rounds' records equal those of an uninterrupted run with the same seed (the reference,
+    run without Dask: ``--scheduler serial``)."""
+    import psutil
+
+    rng = np.random.default_rng(seed)
+    ref = subprocess.run(_validate_cmd(geo, tmp_path / "ref", "--scheduler", "serial"),
+                         capture_output=True, text=True, timeout=1200)
+    assert ref.returncode in (0, 1), ref.stderr
+    out = tmp_path / "killed"
+    proc = subprocess.Popen(_validate_cmd(geo, out, "--workers", "2"),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    started = [out / f"round_000{i}" / "capture" / "capture.yaml" for i in (0, 1)]
+    deadline = time.time() + 600
+    while not all(p.exists() for p in started):
+        assert proc.poll() is None and time.time() < deadline, "the rounds did not start"
+        time.sleep(0.05)
+    time.sleep(float(rng.uniform(0.0, 2.0)))
+    workers = [p for p in psutil.Process(proc.pid).children(recursive=True)
+               if "multiprocessing.spawn" in " ".join(p.cmdline())]
+    assert len(workers) == 2 and not list(out.glob("round_*/round.json")), \
+        "not both rounds in progress at the kill"
+    workers[int(rng.integers(2))].kill()
+    assert proc.wait(timeout=1200) in (0, 1)
+    again = subprocess.run(_validate_cmd(geo, out, "--workers", "2"), capture_output=True,
+                           text=True, timeout=600)
+    assert again.returncode == ref.returncode, again.stderr
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith("round")) == \
+        ["round_0000", "round_0001"]
+    assert [r["index"] for r in json.loads((out / "coverage.json").read_text())["rounds"]] \
+        == [0, 1]
+    for a, b in zip(_round_records(out), _round_records(tmp_path / "ref"), strict=True):
+        assert a == b, [k for k in a.keys() | b.keys() if a.get(k) != b.get(k)]
+    assert (out / "coverage.txt").read_text() == (tmp_path / "ref" / "coverage.txt").read_text()
+    assert not [p for p in out.rglob(".*partial-*")]
