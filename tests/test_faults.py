@@ -174,14 +174,14 @@ def _fit_cmd(spec, out, *extra):
 
 @pytest.fixture(scope="module")
 def two_channel_capture(tmp_path_factory):
-    """Espresso 16 ml at 24 x 18 pixels, channels R and G (one worker process each), and the
+    """Espresso 16 ml at 16 x 12 pixels, channels R and G (one worker process each), and the
     output of an uninterrupted fit of it."""
     from fitmedia.medium import medium_by_name
     from fitmedia.synth import synthesize
     from conftest import make_spec
 
     d = tmp_path_factory.mktemp("kill")
-    spec = synthesize(make_spec(width=24, height=18), d / "cap", medium_by_name("Espresso"),
+    spec = synthesize(make_spec(width=16, height=12), d / "cap", medium_by_name("Espresso"),
                       [16], seed=2)
     spec.write_text(spec.read_text() + "channels: [R, G]\n")
     res = subprocess.run(_fit_cmd(spec, d / "whole"), capture_output=True, text=True,
