@@ -251,8 +251,11 @@ def add_export_parser(sub) -> None:
 
 def cmd_export(a) -> int:
     from .export import export_medium, read_results
+    from .util import check_output_dir
 
-    paths = export_medium(read_results(a.dir), a.dir, scale_to_m=a.scale_to_m)
+    results = read_results(a.dir)
+    check_output_dir(a.dir, "DIR")  # the exports are written beside results.json
+    paths = export_medium(results, a.dir, scale_to_m=a.scale_to_m)
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
 
