@@ -249,6 +249,36 @@ def add_export_parser(sub) -> None:
     p.set_defaults(func=cmd_export)
 
 
+def add_calibrate_parser(sub) -> None:
+    """Add ``fitmedia calibrate`` to the subparsers ``sub`` (issue 16; fitmedia/calibrate.py)."""
+    p = sub.add_parser("calibrate", help="camera intrinsics, distortion and pose in the tank "
+                                         "frame from photographs of a ChArUco board")
+    p.add_argument("images", nargs="+", help="photographs of the board against the front wall")
+    p.add_argument("--board", required=True, help="board description (YAML, docs/calibrate.md)")
+    p.add_argument("--out", required=True, help="the camera block to write (YAML)")
+    p.set_defaults(func=cmd_calibrate)
+
+
+def cmd_calibrate(a) -> int:
+    from .calibrate import run_calibrate
+
+    return run_calibrate(images=a.images, board=a.board, out=a.out)
+
+
+def add_preview_parser(sub) -> None:
+    """Add ``fitmedia preview`` to the subparsers ``sub`` (issue 16; fitmedia/preview.py)."""
+    p = sub.add_parser("preview", help="draw the spec's tank, wall and light over each image")
+    p.add_argument("spec")
+    p.add_argument("--out", required=True, help="PNG to write")
+    p.set_defaults(func=cmd_preview)
+
+
+def cmd_preview(a) -> int:
+    from .preview import run_preview
+
+    return run_preview(spec=a.spec, out=a.out)
+
+
 def cmd_export(a) -> int:
     from .export import export_medium, read_results
     from .util import check_output_dir
@@ -334,6 +364,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_validate_parser(sub)
     add_fit_many_parser(sub)
     add_export_parser(sub)
+    add_calibrate_parser(sub)
+    add_preview_parser(sub)
     return p
 
 
