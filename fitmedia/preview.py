@@ -387,3 +387,52 @@ def run_preview(*, spec: str | Path, out: str | Path, sub: int = 4) -> int:
         print(line)
     print(f"wrote {path}")
     return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# the report's section
+
+
+def _report_spec(results: dict) -> tuple[Spec | None, str]:
+    """The fitted spec, loaded from the path results.json records, or None and why not."""
+    from .inference.identity import _sha256_json
+
+    recorded = results.get("spec")
+    if not recorded:
+        return None, "results.json records no spec path"
+    path = Path(str(recorded))
+    if not path.is_file():
+        return None, (f"the spec {path} is not found from {Path.cwd()} (results.json records "
+                      "the path given to fit; run fitmedia report from the folder fit ran in)")
+    try:
+        spec = load_spec(path)
+    except InputError as exc:
+        return None, str(exc)
+    stored = (results.get("run_identity") or {}).get("spec_sha256")
+    if stored is not None and stored != _sha256_json(spec.raw):
+        return None, f"the spec {path} has changed since the fit"
+    return spec, ""
+
+
+def report_section(results: dict) -> str:
+    """The report's "Geometry preview" section: the preview of the fitted spec as an embedded
+    PNG, or one line saying why it is not drawn (the spec or an image not reachable from
+    here, or changed since the fit)."""
+    import html
+
+    from .report.plots import figure_to_data_uri
+
+    head = "<h2>Geometry preview</h2>\n"
+    spec, why = _report_spec(results)
+    if spec is not None:
+        try:
+            fig, _ = preview_figure(spec)
+        except InputError as exc:
+            spec, why = None, str(exc)
+    if spec is None:
+        return head + f'<p class="muted">Not drawn: {html.escape(why)}.</p>\n'
+    return head + ("<p>The spec's tank, front wall and light drawn over each image from the "
+                   "geometry the forward model uses (as <code>fitmedia preview</code>; "
+                   "docs/preview.md): the outlines must sit on the tank and the bulb in the "
+                   "photographs.</p>\n"
+                   f'<img alt="geometry preview" src="{figure_to_data_uri(fig)}">\n')

@@ -79,7 +79,9 @@ def test_report_with_samples(fit_outputs, tmp_path):
 
     # a corner plot per channel and one data/model/residual figure per image
     n_images = len(results["images"])
-    assert len(IMG_TAG.findall(text)) == len(results["channels"]) + n_images
+    # and the geometry preview (fitmedia.preview.report_section: the spec is reachable here)
+    assert len(IMG_TAG.findall(text)) == len(results["channels"]) + n_images + 1
+    assert 'alt="geometry preview"' in text
     for ch in results["channels"]:
         assert f'alt="corner plot channel {ch}"' in text
 

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import __version__
+from ..version import __version__
 from ..errors import InputError
 from ..regimes import INFORMATIVE_OPTICAL_DEPTH
 from ..util import atomic_write_text
@@ -464,6 +464,14 @@ def _images_section(results: dict, images: dict[str, np.ndarray]) -> str:
     return "".join(parts)
 
 
+def _preview_section(results: dict) -> str:
+    """The spec's geometry over each image (fitmedia.preview; docs/preview.md), or one line
+    saying why not (the spec or an image not reachable from here)."""
+    from ..preview import report_section
+
+    return report_section(results)
+
+
 _DIAG_KEYS = ("converged", "reason", "n_steps", "autocorr_time", "acceptance_fraction", "burn_in",
               "thin", "n_samples", "chi2_per_pixel", "n_pixels", "map_log_posterior",
               "n_evals_map", "g_constrained", "kappa_s_consistent_with_zero")
@@ -579,6 +587,7 @@ def render_report(out_dir: str | Path) -> str:
         _estimates(results, samples),
         _corner_section(results, samples),
         _images_section(results, images),
+        _preview_section(results),
         _diagnostics_section(results),
         _calibration_section(results, samples),
         f'<p class="muted">Report written {now:%Y-%m-%d %H:%M:%S %Z} by fitmedia {__version__} '
