@@ -277,3 +277,45 @@ def test_blank_image_exit_2(tmp_path, views):
     assert "no ChArUco board" in r.stderr and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "c.yaml").exists()
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"squares_x": None}, "squares_x"),
+    ({"sqaures_x": 8}, "sqaures_x"),
+    ({"dictionary": "DICT_5X5_10"}, "dictionary"),
+    ({"dictionary": "DICT_4X4_50", "squares_x": 12, "squares_y": 9}, "dictionary"),
+    ({"marker_length_mm": 40.0}, "marker_length_mm"),
+    ({"square_length_mm": "35"}, "square_length_mm"),
+    ({"placement": None}, "placement"),
+    ({"placement": {"wall_z_mm": WALL_Z}}, "origin_mm"),
+    ({"placement": {"wall_z_mm": WALL_Z, "origin_mm": [0, 0], "x_axis": [0, 0]}}, "x_axis"),
+])
+def test_bad_board_file(tmp_path, change, field):
+    """A board file with a missing, unknown or invalid field: InputError naming the field."""
+    d = {**BOARD_YAML, **change}
+    d = {k: v for k, v in d.items() if v is not None}
+    (tmp_path / "b.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(InputError, match=field):
+        cal.load_board(tmp_path / "b.yaml")
+    with pytest.raises(InputError, match="not found"):
+        cal.load_board(tmp_path / "missing.yaml")
+
+
+def test_bad_images(tmp_path, views):
+    """Unreadable image, images of different sizes, a pose view without the board, too few
+    views, views that are all fronto-parallel: InputError naming the file or the need."""
+    board = views[0].parent / "board.yaml"
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((SIZE[1], SIZE[0]), 128, np.uint8))
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.full((240, 320), 128, np.uint8))
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    out = tmp_path / "c.yaml"
+    cases = [([views[0], broken], "broken.png"), ([views[0], small], "small.png.*320x240"),
+             ([blank, views[1], views[2]], "blank.png: the pose view"),
+             ([views[0], views[1]], "at least 3"), ([views[0]] * 3, "tilted")]
+    for imgs, msg in cases:
+        with pytest.raises(InputError, match=msg):
+            cal.run_calibrate(images=imgs, board=board, out=out)
+    assert not out.exists()
