@@ -129,8 +129,10 @@ def synth_views(folder: Path, seed: int = 7) -> list[Path]:
 
 
 def _run_cli(*args: str | Path) -> subprocess.CompletedProcess:
+    """``python -m fitmedia.cli calibrate ARGS`` from the repository's root (paths absolute)."""
     return subprocess.run([sys.executable, "-m", "fitmedia.cli", "calibrate", *map(str, args)],
-                          capture_output=True, text=True, timeout=120)
+                          capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[1])
 
 
 def _spec_camera(block: dict):
