@@ -321,3 +321,19 @@ def test_bad_images(tmp_path, views):
         with pytest.raises(InputError, match=msg):
             cal.run_calibrate(images=imgs, board=board, out=out)
     assert not out.exists()
+
+
+def test_board_png_round_trip(tmp_path):
+    """write_board_png at 101.6 dpi (4 px/mm) has the board's printed size (8 x 6 squares of
+    35 mm: 1120 x 840 px) and OpenCV's detector finds all 7 x 5 inner corners in it, at the
+    positions of its own board model (reference: the board's object points, scaled)."""
+    (tmp_path / "board.yaml").write_text(yaml.safe_dump(BOARD_YAML))
+    cal.write_board_png(tmp_path / "board.yaml", tmp_path / "board.png", dpi=101.6)
+    img = cv2.imread(str(tmp_path / "board.png"), cv2.IMREAD_GRAYSCALE)
+    px_mm = 4.0
+    assert img.shape == (840, 1120)
+    framed = cv2.copyMakeBorder(img, 20, 20, 20, 20, cv2.BORDER_CONSTANT, value=255)
+    found = cal.detect(cal.make_board(cal.load_board(tmp_path / "board.yaml")), framed)
+    assert found is not None and len(found[0]) == 7 * 5
+    obj, pts = found
+    assert np.abs(obj[:, :2] * px_mm - 0.5 + 20 - pts).max() < 0.2
