@@ -247,13 +247,11 @@ def outline_geometry(spec: Spec, index: int | None = 0, *, sub: int = 4) -> Outl
 
 #: (contour name, colour, line style, width, legend text)
 STYLES = (
-    ("walls", "gold", "-", 0.8, "tank's inner edges (back, sides, floor, top) seen through "
-                                "wall and water"),
-    ("water", "cyan", "-", 1.3, "front wall's inner edge seen through the glass = the fit's "
-                                "footprint"),
-    ("front_wall", "lime", (0, (3, 3)), 1.0, "front wall's outer face (in air, unrefracted)"),
+    ("walls", "gold", "-", 0.8, "tank's inner edges, through wall and water"),
+    ("water", "cyan", "-", 1.3, "front wall's inner edge = the fit's footprint"),
+    ("front_wall", "lime", (0, (3, 3)), 1.0, "front wall's outer face (in air)"),
     ("bulb", "red", "-", 1.2, "bulb's outline"),
-    ("beam", "magenta", (0, (3, 2)), 1.2, "spot's cone: pixels whose ray crosses it"),
+    ("beam", "magenta", (0, (3, 2)), 1.2, "spot's cone (rays crossing it)"),
 )
 
 
@@ -291,7 +289,7 @@ def draw_panel(ax: Axes, image: np.ndarray | None, outlines: Outlines, camera: C
     if outlines.axis_xy is not None:
         a = outlines.axis_xy[np.all(np.isfinite(outlines.axis_xy), axis=1)]
         if len(a) > 1:
-            ax.plot(a[:, 0], a[:, 1], color="magenta", lw=1.2, label="spot's axis (to the wall)")
+            ax.plot(a[:, 0], a[:, 1], color="magenta", lw=1.2, label="spot's axis")
             ax.annotate("", xy=a[-1], xytext=a[-2],
                         arrowprops={"arrowstyle": "-|>", "color": "magenta", "lw": 1.2})
     ax.set_xlim(0, w)
@@ -346,7 +344,7 @@ def preview_figure(spec: Spec, *, sub: int = 4) -> tuple[Figure, list[str]]:
     for ax in axes[len(panels):]:
         ax.set_axis_off()
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=2, fontsize=7, frameon=False)
+    fig.legend(handles, labels, loc="outside lower center", ncol=ncol, fontsize=7, frameon=False)
     return fig, lines
 
 
