@@ -294,8 +294,10 @@ def detect(cboard, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     on one line."""
     import cv2
 
-    det = cv2.aruco.CharucoDetector(cboard)
-    corners, ids, _, _ = det.detectBoard(grey)
+    try:
+        corners, ids, _, _ = cv2.aruco.CharucoDetector(cboard).detectBoard(grey)
+    except cv2.error:  # an image OpenCV's detector cannot take (too small): no board in it
+        return None
     if ids is None or len(ids) < MIN_CORNERS:
         return None
     if cv2.aruco.testCharucoCornersCollinear(cboard, ids):
@@ -390,8 +392,12 @@ def calibrate_views(views, size: tuple[int, int], names: list) -> Calibration:
         raise InputError(f"{names[0]}: the board was found (with >= {MIN_CORNERS} corners) in "
                          f"{len(views)} image(s); at least {MIN_VIEWS} are needed")
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    rms, K, dist, rvecs, tvecs, sd, _, per_view = cv2.calibrateCameraExtended(
-        [o for o, _ in views], [i for _, i in views], size, None, None, criteria=crit)
+    try:
+        rms, K, dist, rvecs, tvecs, sd, _, per_view = cv2.calibrateCameraExtended(
+            [o for o, _ in views], [i for _, i in views], size, None, None, criteria=crit)
+    except cv2.error as exc:
+        raise InputError(f"{names[0]}: OpenCV's calibration failed on these views "
+                         f"({' '.join(str(exc).split())[-120:]})") from None
     tilts = _tilts_deg(rvecs)
     n_tilted = int(np.sum(tilts >= TILT_DEG))
     if n_tilted < MIN_TILTED:
@@ -410,7 +416,9 @@ def calibrate_views(views, size: tuple[int, int], names: list) -> Calibration:
 
 
 def _fmt(x: float) -> str:
-    return repr(round(float(x), 6)) if abs(x) >= 1e-3 else f"{float(x):.6e}"
+    """A number YAML reads back as a float (PyYAML wants a '.' and a signed exponent)."""
+    s = repr(round(float(x), 6))
+    return s if abs(x) >= 1e-3 and "e" not in s else f"{float(x):.6e}"
 
 
 def _vec(v) -> str:
