@@ -461,6 +461,8 @@ def run_calibrate(*, images: list, board: str | Path, out: str | Path) -> int:
     """
     from .util import atomic_write_text
 
+    if Path(out).is_dir():
+        raise InputError(f"{out}: --out is a folder; give the camera YAML file to write")
     bd = load_board(board)
     paths = [Path(p) for p in images]
     views, used, size = _detect_all(paths, make_board(bd), bd)
@@ -481,7 +483,10 @@ def run_calibrate(*, images: list, board: str | Path, out: str | Path) -> int:
     if cal.rms_px > WARN_RMS_PX:
         _warn(f"RMS reprojection error {cal.rms_px:.2f} px > {WARN_RMS_PX} px: blurred or "
               "moved views, a board that is not flat, or a wrong board file")
-    atomic_write_text(out, format_camera_yaml(block, _notes(cal, used, len(paths), str(board))))
+    try:
+        atomic_write_text(out, format_camera_yaml(block, _notes(cal, used, len(paths), str(board))))
+    except OSError as exc:
+        raise InputError(f"{out}: cannot be written ({exc.strerror or exc})") from None
     print(f"wrote {out}: fx {block['fx']:.2f}, fy {block['fy']:.2f} px, camera at "
           f"{_vec(np.round(block['position'], 1))} mm; RMS reprojection error "
           f"{cal.rms_px:.3f} px over {len(used)} views")

@@ -305,7 +305,8 @@ def test_bad_board_file(tmp_path, change, field):
 
 def test_bad_images(tmp_path, views):
     """Unreadable image, images of different sizes, a pose view without the board, too few
-    views, views that are all fronto-parallel: InputError naming the file or the need."""
+    views, views that are all fronto-parallel, --out a folder: InputError naming the file
+    or the need."""
     board = views[0].parent / "board.yaml"
     blank = tmp_path / "blank.png"
     cv2.imwrite(str(blank), np.full((SIZE[1], SIZE[0]), 128, np.uint8))
@@ -321,6 +322,8 @@ def test_bad_images(tmp_path, views):
         with pytest.raises(InputError, match=msg):
             cal.run_calibrate(images=imgs, board=board, out=out)
     assert not out.exists()
+    with pytest.raises(InputError, match="--out is a folder"):
+        cal.run_calibrate(images=views, board=board, out=tmp_path)
 
 
 def test_board_png_round_trip(tmp_path):
