@@ -50,6 +50,24 @@ def test_a_dilute_capture_passes_and_its_negation_does_not(rng):
                           background_sd=3 * np.sqrt(READ_VAR))
 
 
+def test_a_dilute_capture_is_lit_and_pure_noise_is_not(rng):
+    """Second model: pure normal read noise puts 2.9e-7 of its pixels above 5 sd, so a black
+    frame (read noise only) has no lit pixel and is refused as black, or, when pixels are
+    saturated, as a glow with no unsaturated sample; the dilute photo's faint glow (2 % of the
+    pixels at 300 sd) passes."""
+    data = _dilute(rng)
+    read = np.full(data.shape, READ_VAR)
+    checks.check_lit(_image(data), (0, 1, 2), "RGB", read)
+    noise = rng.normal(0.0, np.sqrt(READ_VAR), data.shape)
+    with pytest.raises(ImageError, match="x.tiff: channel R: 0 of 10800 .* a black image"):
+        checks.check_lit(_image(noise), (0, 1, 2), "RGB", read)
+    sat = LoadedImage(data=noise, valid=np.ones(noise.shape, bool), n_saturated=40, n_masked=0,
+                      source="x.tiff", exposures=(1.0, 0.1))
+    with pytest.raises(ImageError, match="no unsaturated sample of the glow: its 40 saturated "
+                                         "pixels are saturated in every frame"):
+        checks.check_lit(sat, (0, 1, 2), "RGB", read)
+
+
 @pytest.mark.parametrize("scale, words", [
     (0.0, "0 at every usable pixel"),
     (1e304, "e+302 per second after dividing by exposure_s"),  # exposure_s 1e-300 s, ~0.01

@@ -34,6 +34,10 @@ MAX_NEGATIVE_FRACTION = 0.01
 #: normal tail's share) when fewer of its pixels lie as far above 0: a photograph of the lit
 #: tank has its glow and bulb far above the noise, a negated one has nothing there.
 MIN_NEGATIVE_COUNT, MIN_NEGATIVE_SHARE = 10, 1e-4
+#: A photograph of the lit tank has more than this many usable pixels, and this fraction of
+#: them, above LIT_SIGMAS read-noise sd (its own per-pixel read noise): pure normal noise puts
+#: 2.9e-7 of its pixels there (7 of 24 megapixels), 1e-6 is 3.4 times that share.
+MIN_LIT_COUNT, MIN_LIT_SHARE, LIT_SIGMAS = 3, 1e-6, 5.0
 
 
 def check_values(img: LoadedImage, channels: Sequence[int], names: Sequence[str]) -> None:
@@ -109,3 +113,23 @@ def check_distinct(named: Sequence[tuple[str, Sequence[Path], LoadedImage]]) -> 
                 raise ImageError(f"{img.source}: {fld} has the same pixel values as {fld0} "
                                  f"({img0.source}); each concentration and the clear water need "
                                  "their own photo")
+
+
+def check_lit(img: LoadedImage, channels: Sequence[int], names: Sequence[str],
+              read_map: np.ndarray) -> None:
+    """Refuse a channel with no glow to fit: at most :data:`MIN_LIT_COUNT` (or
+    :data:`MIN_LIT_SHARE` of the) usable pixels above :data:`LIT_SIGMAS` sd of their own read
+    noise (``read_map``, (H, W, 3), the image's units).  With saturated pixels that is a glow
+    saturated in every frame (no unsaturated sample of it); without, a black image."""
+    for ci, ch in zip(channels, names):
+        ok = img.valid[..., ci]
+        v, rv = img.data[..., ci][ok], np.broadcast_to(read_map, img.data.shape)[..., ci][ok]
+        n_lit = int(np.count_nonzero(v > LIT_SIGMAS * np.sqrt(np.maximum(rv, 0.0))))
+        if v.size == 0 or n_lit > max(MIN_LIT_COUNT, MIN_LIT_SHARE * v.size):
+            continue
+        frames = "every frame" if len(img.exposures) > 1 else "the image"
+        why = (f"no unsaturated sample of the glow: its {img.n_saturated} saturated pixels are "
+               f"saturated in {frames} and the rest is dark; add a shorter exposure"
+               if img.n_saturated else "a black image (lens cap, light off, or exposure_s?)")
+        raise ImageError(f"{img.source}: channel {ch}: {n_lit} of {v.size} usable pixels are "
+                         f"above {LIT_SIGMAS:g} read-noise sd: {why}")

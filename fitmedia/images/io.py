@@ -162,6 +162,30 @@ def _bin_bayer(path: Path, img: np.ndarray, colors: np.ndarray, black: np.ndarra
     return data / count, peak, count
 
 
+class _CapturedStderr:
+    """The process's file descriptor 2 redirected to a temporary file while inside (LibRaw's C
+    code prints its complaints, e.g. "Unexpected end of file", there): ``text`` afterwards."""
+
+    def __enter__(self):
+        import sys
+        import tempfile
+
+        sys.stderr.flush()
+        self._tmp = tempfile.TemporaryFile()
+        self._saved = os.dup(2)
+        os.dup2(self._tmp.fileno(), 2)
+        self.text = ""
+        return self
+
+    def __exit__(self, *exc):
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        self._tmp.seek(0)
+        self.text = " ".join(self._tmp.read().decode(errors="replace").split())
+        self._tmp.close()
+        return False
+
+
 def _read_raw(path: Path) -> Frame:
     """A camera RAW file in sensor units, exactly (docs/spec.md, "Camera RAW").
 
@@ -171,8 +195,9 @@ def _read_raw(path: Path) -> Frame:
     """
     import rawpy
 
+    said = _CapturedStderr()
     try:
-        with rawpy.imread(str(path)) as raw:
+        with said, rawpy.imread(str(path)) as raw:
             img = np.array(raw.raw_image_visible, dtype=np.float64)
             black = np.asarray(raw.black_level_per_channel, dtype=np.float64)
             white = float(raw.white_level)
@@ -180,7 +205,8 @@ def _read_raw(path: Path) -> Frame:
             flat = raw.raw_type == rawpy.RawType.Flat
             colors = np.array(raw.raw_colors_visible) if flat else None
     except (rawpy.LibRawError, OSError, MemoryError, ValueError) as exc:
-        raise ImageError(f"{path}: not a readable camera RAW file ({_why(exc)})") from None
+        libraw = f"; LibRaw: {said.text.replace(str(path) + ': ', '')}" if said.text else ""
+        raise ImageError(f"{path}: not a readable camera RAW file ({_why(exc)}{libraw})") from None
     if flat:
         data, peak, count = _bin_bayer(path, img, colors, black, desc)
     else:

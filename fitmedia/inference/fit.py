@@ -194,6 +194,8 @@ def prepare(spec: Spec) -> Prepared:
                 for ci in ch_idx]
         checks.check_negative(im, ch_idx, spec.channels, read,
                               float(spec.priors.get("background_sd", 0.0)))
+        if where != "calibration.clear_water":  # the bulb on black: calibrate() judges it
+            checks.check_lit(im, ch_idx, spec.channels, maps[where][1])
     brightness: dict[str, float | None]
     light = spec.light
     rel_sd: dict[str, float | None] = {c: None for c in spec.channels}

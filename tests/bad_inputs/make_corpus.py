@@ -125,6 +125,73 @@ def _empty_checkpoint(d: Path, base: Path) -> None:
     (d / "out" / "checkpoint_R.npz").write_bytes(b"")
 
 
+def _write_dng(path: Path) -> bytes:
+    """A valid 32 x 24 Bayer DNG (tests/test_raw.py's writer); returns its bytes."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from test_raw import write_bayer_dng
+
+    write_bayer_dng(path, np.full((24, 32), 600, np.uint16))
+    return path.read_bytes()
+
+
+def _raw(kind: str):
+    """Mutation: images[0] replaced by an unreadable ('garbage') or truncated RAW file."""
+    def mutate(data: dict, d: Path, base: Path) -> None:
+        body = b"not a raw file " * 40 if kind == "garbage" else _write_dng(d / "full.dng")[:1200]
+        (d / "x.dng").write_bytes(body)
+        data["images"][0]["path"] = str(d / "x.dng")
+    return mutate
+
+
+def _tiff(name: str, arr: np.ndarray) -> str:
+    import tifffile
+
+    tifffile.imwrite(name, arr, photometric="rgb" if arr.ndim == 3 else None)
+    return name
+
+
+def _other_size(data: dict, d: Path, base: Path) -> None:
+    import tifffile
+
+    img = tifffile.imread(data["images"][1]["path"])
+    data["images"][1]["path"] = _tiff(str(d / "big.tiff"), np.pad(img, ((0, 2), (0, 2), (0, 0))))
+
+
+def _black(data: dict, d: Path, base: Path) -> None:
+    """images[0]: read noise only (the spec's read_var), no glow."""
+    sd = np.sqrt(data["noise"]["read_var"])
+    noise = np.random.default_rng(3).normal(0.0, sd, (H, W, 3)).astype(np.float32)
+    data["images"][0]["path"] = _tiff(str(d / "black.tiff"), noise)
+
+
+def _all_saturated(data: dict, d: Path, base: Path) -> None:
+    data["images"][0].update(path=_tiff(str(d / "sat.tiff"), np.full((H, W, 3), 65535, np.uint16)),
+                             response="linear")
+    data["images"][0].pop("saturation", None)
+
+
+def _glow_saturated_bracket(data: dict, d: Path, base: Path) -> None:
+    """images[0]: a 2-frame float bracket whose brightest 30 % (the glow) is above the entry's
+    saturation in both frames and whose rest is read noise."""
+    import tifffile
+
+    img = tifffile.imread(data["images"][0]["path"])
+    glow = img.max(axis=2, keepdims=True) > np.percentile(img.max(axis=2), 70)
+    sd, rng, paths = np.sqrt(data["noise"]["read_var"]), np.random.default_rng(4), []
+    for k, t in enumerate((1.0, 0.5)):
+        frame = np.where(glow, 10.0, rng.normal(0.0, sd * t, img.shape)).astype(np.float32)
+        paths.append(_tiff(str(d / f"b{k}.tiff"), frame))
+    data["images"][0].update(path=paths, exposure_s=[1.0, 0.5], saturation=5.0)
+    data["noise"]["exposure_s"] = 1.0
+
+
+def _wrong_size(key: str):
+    def mutate(data: dict, d: Path, base: Path) -> None:
+        arr = np.ones((5, 7), np.uint8) if key == "mask" else np.ones((5, 7, 3), np.float32)
+        data["images"][0][key] = _tiff(str(d / f"{key}.tiff"), arr)
+    return mutate
+
+
 BOMB = "\n".join([f"l0: &l0 [{', '.join(['lol'] * 9)}]"]
                  + [f"l{k}: &l{k} [{', '.join([f'*l{k - 1}'] * 9)}]" for k in range(1, 10)])
 FIT = ["fit", "{d}/spec.yaml", "--out", "{d}/out", "--no-mcmc", "--quiet"]
@@ -193,6 +260,22 @@ def cases() -> list[Case]:
              _spec(lambda d, *_: d["images"][0].update(exposure_s=1e-300))),
         Case("huge_exposure", "exposure over/underflow", FIT, 2, ["exposure_s", "1e-100"],
              _spec(lambda d, *_: d["images"][0].update(exposure_s=1e300))),
+        Case("raw_unreadable", "broken RAW file", FIT, 2,
+             ["x.dng", "not a readable camera RAW file"], _spec(_raw("garbage"))),
+        Case("raw_truncated", "broken RAW file", FIT, 2,
+             ["x.dng", "not a readable camera RAW file"], _spec(_raw("truncated"))),
+        Case("images_of_other_sizes", "image of the wrong size", FIT, 2,
+             ["big.tiff", "18x14", "expected 16x12"], _spec(_other_size)),
+        Case("mask_wrong_size", "image of the wrong size", FIT, 2,
+             ["mask.tiff", "7x5", "expected 16x12"], _spec(_wrong_size("mask"))),
+        Case("flat_wrong_size", "image of the wrong size", FIT, 2,
+             ["flat.tiff", "7x5", "expected 16x12"], _spec(_wrong_size("flat"))),
+        Case("black_image", "black or saturated image", FIT, 2,
+             ["black.tiff", "a black image"], _spec(_black)),
+        Case("wholly_saturated", "black or saturated image", FIT, 2,
+             ["sat.tiff", "saturated in 100%"], _spec(_all_saturated)),
+        Case("bracket_glow_saturated", "black or saturated image", FIT, 2,
+             ["b0.tiff + ", "no unsaturated sample of the glow"], _spec(_glow_saturated_bracket)),
         Case("bulb_not_seen", "camera cannot see the bulb", FIT, 2,
              ["cannot see the bulb", "outside the wall's opening"],
              _spec(lambda d, *_: d["camera"].update(position=[600, 0, 300],
