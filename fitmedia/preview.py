@@ -258,12 +258,13 @@ STYLES = (
 def display_stretch(data: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     """(H, W, 3) in [0, 1] for display: linear, divided by the :data:`CLIP_PERCENTILE`
     percentile of the usable pixels' values (all channels) or :data:`MIN_TOP` of the
-    brightest, whichever is higher, clipped, raised to :data:`GAMMA`.  (The floor keeps a photo
+    brightest pixel (saturated ones included), whichever is higher, clipped, raised to :data:`GAMMA`.  (The floor keeps a photo
     whose light covers under 0.5 % of the pixels, the clear-water bulb, from being stretched
     up to its noise.)"""
+    every = data[np.isfinite(data)]
     vals = data[valid] if valid is not None and valid.any() else data.ravel()
     vals = vals[np.isfinite(vals)]
-    top = (max(float(np.percentile(vals, CLIP_PERCENTILE)), MIN_TOP * float(vals.max()))
+    top = (max(float(np.percentile(vals, CLIP_PERCENTILE)), MIN_TOP * float(every.max()))
            if vals.size else 0.0)
     if not top > 0:
         return np.zeros(data.shape)
@@ -271,12 +272,18 @@ def display_stretch(data: np.ndarray, valid: np.ndarray | None = None) -> np.nda
 
 
 def draw_panel(ax: Axes, image: np.ndarray | None, outlines: Outlines, camera: Camera,
-               light: Light, title: str) -> None:
+               light: Light, title: str, unused: np.ndarray | None = None) -> None:
     """One image with its outlines on ``ax`` (image coordinates: x right, y down, pixel
-    edges at integers); ``image`` None draws the outlines on black."""
+    edges at integers); ``image`` None draws the outlines on black; ``unused`` (H, W) bool
+    marks the pixels the fit cannot use (saturated or masked), tinted blue."""
     w, h = camera.width, camera.height
     shown = np.zeros((h, w, 3)) if image is None else image
     ax.imshow(shown, extent=(0, w, h, 0), interpolation="nearest")
+    if unused is not None and unused.any():
+        tint = np.zeros((h, w, 4))
+        tint[unused] = (0.25, 0.45, 1.0, 0.7)
+        ax.imshow(tint, extent=(0, w, h, 0), interpolation="nearest")
+        ax.fill([], [], color=tint[unused][0], label="saturated or masked (not fitted)")
     for name, colour, ls, lw, label in STYLES:
         names = WALLS if name == "walls" else (name,)
         lines = [c for n in names for c in outlines.contours.get(n, [])]
@@ -332,19 +339,24 @@ def preview_figure(spec: Spec, *, sub: int = 4) -> tuple[Figure, list[str]]:
     lines = []
     for ax, (title, index, entry) in zip(axes, panels):
         camera, light = _geometry(spec, index)
-        image = None
+        image = unused = None
         if entry is not None:
             with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
                 loaded = load_entry(entry, expected_shape=(camera.height, camera.width),
                                     channels=chans)
             image = display_stretch(loaded.data, loaded.valid)
+            unused = ~loaded.valid[..., list(chans)].all(axis=2)
         outlines = outline_geometry(spec, index, sub=sub)
-        draw_panel(ax, image, outlines, camera, light, title)
+        draw_panel(ax, image, outlines, camera, light, title, unused)
         lines.append(_summary(title, outlines, light))
     for ax in axes[len(panels):]:
         ax.set_axis_off()
-    handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=ncol, fontsize=7, frameon=False)
+    entries: dict = {}
+    for ax in axes[:len(panels)]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            entries.setdefault(label, handle)
+    fig.legend(list(entries.values()), list(entries), loc="outside lower center", ncol=ncol,
+               fontsize=7, frameon=False)
     return fig, lines
 
 
