@@ -258,9 +258,9 @@ STYLES = (
 def display_stretch(data: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     """(H, W, 3) in [0, 1] for display: linear, divided by the :data:`CLIP_PERCENTILE`
     percentile of the usable pixels' values (all channels) or :data:`MIN_TOP` of the
-    brightest pixel (saturated ones included), whichever is higher, clipped, raised to :data:`GAMMA`.  (The floor keeps a photo
-    whose light covers under 0.5 % of the pixels, the clear-water bulb, from being stretched
-    up to its noise.)"""
+    brightest pixel (saturated ones included), whichever is higher, clipped, raised to
+    :data:`GAMMA`.  (The floor keeps a photo whose light covers under 0.5 % of the pixels,
+    the clear-water bulb, from being stretched up to its noise.)"""
     every = data[np.isfinite(data)]
     vals = data[valid] if valid is not None and valid.any() else data.ravel()
     vals = vals[np.isfinite(vals)]
