@@ -12,8 +12,10 @@ Optional extensions (documented in ``docs/spec.md``):
   intensity in the water, image units x mm^2).
 * ``images[].saturation`` / ``calibration.clear_water.saturation``: the raw
   file value at or above which a pixel is saturated.
-* ``images[].response: linear | srgb``: how an 8- or 16-bit file encodes light (required
-  for them; docs/spec.md).
+* ``images[].response: linear | srgb | {curve: FILE}``: how an 8- or 16-bit file encodes
+  light (required for them; a curve file: a measured camera response, docs/spec.md).
+* ``images[].binning: N``: N x N pixels averaged after decoding (the camera block describes
+  the binned image; docs/spec.md, "Binning").
 """
 
 from __future__ import annotations
@@ -77,6 +79,11 @@ LIGHT_SCHEMA = {
 }
 
 _sat = {"type": "number", "exclusiveMinimum": 0}
+# an image entry's decoding (docs/spec.md: "Non-linear input", "Measured response", "Binning")
+_response = {"oneOf": [{"enum": ["linear", "srgb"]},
+                       {"type": "object", "additionalProperties": False, "required": ["curve"],
+                        "properties": {"curve": {"type": "string", "minLength": 1}}}]}
+_binning = {"type": "integer", "minimum": 1}
 
 IMAGE_SCHEMA = {
     "type": "object", "additionalProperties": False, "required": ["path", "exposure_s"],
@@ -86,7 +93,7 @@ IMAGE_SCHEMA = {
         "dark": _paths, "mask": {"type": "string", "minLength": 1},
         "flat": {"type": "string", "minLength": 1},
         "light": {"type": "object"}, "camera": {"type": "object"},
-        "saturation": _sat, "response": {"enum": ["linear", "srgb"]},
+        "saturation": _sat, "response": _response, "binning": _binning,
     },
 }
 
@@ -138,7 +145,8 @@ SCHEMA = {
                 "required": ["path", "exposure_s"],
                 "properties": {"path": _paths, "exposure_s": _exposures, "dark": _paths,
                                "flat": {"type": "string", "minLength": 1},
-                               "saturation": _sat, "response": {"enum": ["linear", "srgb"]}}}},
+                               "saturation": _sat, "response": _response,
+                               "binning": _binning}}},
         },
         "noise": {"type": "object", "additionalProperties": False,
                   "required": ["gain", "read_var"],
@@ -203,6 +211,8 @@ class ImageEntry:
     saturation: float | None = None
     response: str | None = None
     flat: Path | None = None  # flat-field image (docs/spec.md, "Flat field")
+    binning: int = 1  # N x N pixels averaged after decoding (docs/spec.md, "Binning")
+    response_curve: Path | None = None  # response "curve": its file (images/response.py)
     camera: Camera | None = None
     light: Light | None = None
 
@@ -325,9 +335,13 @@ def _image_entry(d: dict, base: Path, where: str, fld: str, spec_cam: dict, spec
         raise SpecError(where, f"{fld}.dark", f"{len(darks)} dark frames for {len(paths)} paths")
     mask = base / d["mask"] if "mask" in d else None
     flat = base / d["flat"] if "flat" in d else None
+    response, curve = d.get("response"), None
+    if isinstance(response, dict):
+        response, curve = "curve", base / response["curve"]
     if check_files:
         for key, lst in (("path", paths), ("dark", darks), ("mask", [mask] if mask else []),
-                         ("flat", [flat] if flat else [])):
+                         ("flat", [flat] if flat else []),
+                         ("response.curve", [curve] if curve else [])):
             for p in lst:
                 if not p.is_file():
                     raise SpecError(where, f"{fld}.{key}", f"file not found: {p}")
@@ -344,8 +358,8 @@ def _image_entry(d: dict, base: Path, where: str, fld: str, spec_cam: dict, spec
         light = _light(merged, where, f"{fld}.light")
     return ImageEntry(paths=tuple(paths), exposures=tuple(exps),
                       concentration=float(d.get("concentration", 1.0)), darks=tuple(darks),
-                      mask=mask, saturation=d.get("saturation"), response=d.get("response"),
-                      flat=flat,
+                      mask=mask, saturation=d.get("saturation"), response=response,
+                      flat=flat, binning=int(d.get("binning", 1)), response_curve=curve,
                       camera=cam, light=light)
 
 

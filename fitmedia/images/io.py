@@ -305,12 +305,15 @@ def looks_srgb(frame: Frame) -> float | None:
     return frac if frac > SRGB_MIDTONE_FRACTION else None
 
 
-def linearise(frame: Frame, response: str | None, path: Path) -> Frame:
+def linearise(frame: Frame, response: str | None, path: Path,
+              curve: Path | None = None) -> Frame:
     """A frame in linear units: 8- and 16-bit files through their declared ``response``.
 
     ``linear``: as stored.  ``srgb``: through :func:`srgb_to_linear`, still scaled to the
-    file's range (0..255 or 0..65535) so that file units keep their meaning.  Undeclared:
-    refused.  Float and RAW files are linear; ``srgb`` on them is refused.
+    file's range (0..255 or 0..65535) so that file units keep their meaning.  ``curve``: through
+    the measured response in the file ``curve`` (:mod:`fitmedia.images.response`; one row per
+    code value, scaled to the file's range).  Undeclared: refused.  Float and RAW files are
+    linear; ``srgb`` or a curve on them is refused.
 
     Raises
     ------
@@ -318,12 +321,19 @@ def linearise(frame: Frame, response: str | None, path: Path) -> Frame:
         Naming the file and the fix (and the sRGB look of its histogram when it has it).
     """
     if not frame.encoded:
-        if response == "srgb":
-            raise ImageError(f"{path}: 'response: srgb' is for 8- or 16-bit TIFF/PNG files; "
+        if response in ("srgb", "curve"):
+            what = "srgb" if response == "srgb" else "{curve: ...}"
+            raise ImageError(f"{path}: 'response: {what}' is for 8- or 16-bit TIFF/PNG files; "
                              "float and RAW files are linear (remove it)")
         return frame
     if response == "linear":
         return frame
+    if response == "curve" and curve is not None:
+        from .response import curve_quantum, decode, read_curve
+
+        table = read_curve(curve, int(frame.level) + 1)
+        return replace(frame, data=decode(frame.peak, table), quantum=curve_quantum(table),
+                       encoded=False)
     if response == "srgb":
         lin = srgb_to_linear(frame.data / frame.level) * frame.level
         return replace(frame, data=lin, quantum=frame.quantum / 12.92, encoded=False)
@@ -351,7 +361,7 @@ def read_image(path: str | Path) -> tuple[np.ndarray, float | None]:
     return frame.data, frame.level
 
 
-def _read_flat(path: Path, response: str | None, shape: tuple[int, int],
+def _read_flat(path: Path, entry: ImageEntry, shape: tuple[int, int],
                valid: np.ndarray) -> np.ndarray:
     """A flat-field image (the camera's relative response per pixel and channel, vignetting
     included) scaled to mean 1 over the ``valid`` pixels of each channel.
@@ -361,7 +371,8 @@ def _read_flat(path: Path, response: str | None, shape: tuple[int, int],
     ImageError
         Unreadable, of the wrong size, or not positive at a usable pixel.
     """
-    flat = linearise(_frame(path, shape, "flat field"), response, path).data.copy()
+    flat = linearise(_frame(path, shape, "flat field", entry.binning), entry.response, path,
+                     entry.response_curve).data.copy()
     for ci in range(3):
         f = flat[..., ci][valid[..., ci]]
         if f.size and not np.all(f > 0):
@@ -372,12 +383,14 @@ def _read_flat(path: Path, response: str | None, shape: tuple[int, int],
     return np.where(flat > 0, flat, 1.0)
 
 
-def _read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
-    """(H, W) bool, True where the mask file is non-zero in every channel (alpha included)."""
+def _read_mask(path: str | Path, shape: tuple[int, int], binning: int = 1) -> np.ndarray:
+    """(H, W) x ``binning`` bool, True where the mask file is non-zero in every channel (alpha
+    included); the mask is of the images' size (before binning)."""
     arr = _read_any(path)
-    if arr.shape[:2] != tuple(shape):
-        raise ImageError(f"{path}: mask is {arr.shape[1]}x{arr.shape[0]} pixels (width x height), "
-                         f"expected {shape[1]}x{shape[0]} like the images")
+    err = _size_error(Path(path), "mask", arr.shape, shape, binning)
+    if err is not None:
+        raise err
+    arr = arr[:shape[0] * binning, :shape[1] * binning]
     return arr != 0 if arr.ndim == 2 else np.all(arr != 0, axis=2)
 
 
@@ -443,6 +456,11 @@ class LoadedImage:
         The frames' exposure times, s.
     flat : ndarray of shape (H, W, 3) or None
         The flat field ``data`` was divided by (mean 1 over the usable pixels), if any.
+    noise_scale : tuple of two ndarrays of shape (H, W, 3), or None
+        Binned images only (:func:`bin_image`): the per-pixel factors of the camera's ``a``
+        and floored ``b`` in the variance (they replace exposure, reads, samples and flat).
+    unbinned : LoadedImage or None
+        Binned images only: the image before binning (the noise is estimated on it).
     """
 
     data: np.ndarray
@@ -456,6 +474,8 @@ class LoadedImage:
     quant_var: float = 0.0
     exposures: tuple[float, ...] = (1.0,)
     flat: np.ndarray | None = None
+    noise_scale: tuple[np.ndarray, np.ndarray] | None = None
+    unbinned: LoadedImage | None = None
 
     def variance_maps(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per-pixel noise model of ``data``: variance = gain_map * mean + read_map.
@@ -473,10 +493,13 @@ class LoadedImage:
             number of reads (frames plus subtracted darks) and n the samples binned
             into it: gain_map = a / (n T), read_map = N max(b, quant_var) / (n T^2), both
             divided by the flat field (``gain_map``) and its square (``read_map``) if any.
-            ``read_map`` is positive: ``b`` is floored at the quantisation variance.
+            ``read_map`` is positive: ``b`` is floored at the quantisation variance.  A binned
+            image (``noise_scale``) gives a and the floored b times its factors.
         """
         a = np.broadcast_to(np.asarray(a, float), (3,))
         b = np.maximum(np.broadcast_to(np.asarray(b, float), (3,)), self.quant_var)
+        if self.noise_scale is not None:
+            return a * self.noise_scale[0], b * self.noise_scale[1]
         t = self.exposure if self.exposure is not None else np.full(self.data.shape,
                                                                     self.exposures[0])
         n = self.reads if self.reads is not None else np.ones(self.data.shape)
@@ -484,13 +507,61 @@ class LoadedImage:
         return a / (self.samples * t * f), n * b / (self.samples * t * t * f * f)
 
 
-def _frame(path: Path, shape: tuple[int, int], what: str) -> Frame:
+def _block_mean(a: np.ndarray, n: int) -> np.ndarray:
+    """Mean of each n x n block of the first two axes (their sizes multiples of n)."""
+    h, w = a.shape[0] // n, a.shape[1] // n
+    return a.reshape(h, n, w, n, *a.shape[2:]).mean(axis=(1, 3))
+
+
+def bin_image(img: LoadedImage, n: int, saturated: np.ndarray, masked: np.ndarray
+              ) -> LoadedImage:
+    """``img`` binned n x n (docs/spec.md, "Binning"): each pixel and channel the mean of its
+    block; valid only where every member is; ``saturated`` / ``masked`` ((H, W) bool, before
+    binning) give the binned pixels' counts.  The variance of a mean of n^2 independent pixels
+    is the sum of theirs over n^4: with the members' factors g_i (of a) and r_i (of the floored
+    b) the binned pixel's are mean(g_i) / n^2 and mean(r_i) / n^2, exact for the read part and
+    for the gain part where the members share g_i (one frame, no flat), else at the block's
+    mean level."""
+    gain1, read1 = img.variance_maps(np.ones(3), np.ones(3))  # per unit a and floored b
+    if img.quant_var > 1.0:  # variance_maps floors b = 1 at quant_var: undo that
+        read1 = read1 / img.quant_var
+    scale = (_block_mean(gain1, n) / n ** 2, _block_mean(read1, n) / n ** 2)
+    valid = _block_mean(img.valid.astype(float), n) == 1.0
+    h, w = img.data.shape[0] // n, img.data.shape[1] // n
+    blocks = (lambda m: m.reshape(h, n, w, n).any(axis=(1, 3)))
+    return replace(img, data=_block_mean(img.data, n), valid=valid,
+                   n_saturated=int(np.count_nonzero(blocks(saturated))),
+                   n_masked=int(np.count_nonzero(blocks(masked))),
+                   exposure=_block_mean(img.exposure, n), reads=_block_mean(img.reads, n),
+                   flat=None, noise_scale=scale, unbinned=img)
+
+
+def _size_error(path: Path, what: str, got: tuple[int, ...], shape: tuple[int, int],
+                binning: int) -> ImageError | None:
+    """Why an image of ``got`` pixels (height, width) cannot be ``shape`` (camera.size) after
+    ``binning`` x ``binning`` binning (which drops up to binning - 1 last rows and columns);
+    None when it can."""
+    h, w = got[:2]
+    if (h // binning, w // binning) == tuple(shape):
+        return None
+    raw = " (a RAW file's 2x2 Bayer quads binned)" if path.suffix.lower() in RAW_EXT else ""
+    want = (f"expected {shape[1]}x{shape[0]} (camera.size)" if binning == 1 else
+            f"expected {binning * shape[1]}x{binning * shape[0]} (camera.size {shape[1]}x"
+            f"{shape[0]} times binning {binning}; up to {binning - 1} more rows and columns "
+            "are dropped)")
+    return ImageError(f"{path}: {what} is {w}x{h} pixels{raw} (width x height), {want}")
+
+
+def _frame(path: Path, shape: tuple[int, int], what: str, binning: int = 1) -> Frame:
+    """The file as a Frame of ``shape`` x ``binning`` pixels (rows and columns that binning
+    drops cut off)."""
     frame = read_frame(path)
-    if frame.data.shape[:2] != tuple(shape):
-        h, w = frame.data.shape[:2]
-        binned = " (a RAW file's 2x2 Bayer quads binned)" if path.suffix.lower() in RAW_EXT else ""
-        raise ImageError(f"{path}: {what} is {w}x{h} pixels{binned} (width x height), "
-                         f"expected {shape[1]}x{shape[0]} (camera.size)")
+    err = _size_error(path, what, frame.data.shape, shape, binning)
+    if err is not None:
+        raise err
+    h, w = shape[0] * binning, shape[1] * binning
+    if frame.data.shape[:2] != (h, w):
+        frame = replace(frame, data=frame.data[:h, :w], peak=frame.peak[:h, :w])
     return frame
 
 
@@ -552,15 +623,19 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
                          "positive time per path")
     if len(darks) not in (0, 1, len(paths)):
         raise InputError(f"{source}: dark: {len(darks)} dark frames for {len(paths)} paths")
-    shape = (int(expected_shape[0]), int(expected_shape[1]))
-    data, exposure, reads, samples, quant_var = _merge(entry, shape)
+    if not isinstance(entry.binning, int) or entry.binning < 1:
+        raise InputError(f"{source}: binning: {entry.binning!r}; expected an integer >= 1")
+    camera = (int(expected_shape[0]), int(expected_shape[1]))
+    shape = (camera[0] * entry.binning, camera[1] * entry.binning)  # the files' (cut) size
+    data, exposure, reads, samples, quant_var = _merge(entry, camera)
     usable = exposure > 0
     exposure = np.where(usable, exposure, sum(exps))
     k = len(paths)
     reads = np.where(usable, reads, k + (k * k if len(darks) == 1 and k > 1 else k) * bool(darks))
-    mask_ok = np.ones(shape, bool) if entry.mask is None else _read_mask(entry.mask, shape)
+    mask_ok = (np.ones(shape, bool) if entry.mask is None else
+               _read_mask(entry.mask, camera, entry.binning))
     valid = usable & mask_ok[..., None]
-    flat = None if entry.flat is None else _read_flat(entry.flat, entry.response, shape, valid)
+    flat = None if entry.flat is None else _read_flat(entry.flat, entry, camera, valid)
     if flat is not None:
         data = data / flat
     saturated = ~usable[..., chans].all(axis=2)
@@ -573,28 +648,32 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
                 f"{fm:.0f}% masked)")
         raise ImageError(f"{source}: {what}; at most {100 * MAX_UNUSABLE_FRACTION:.0f}% may be "
                          "unusable (use a shorter exposure or an exposure bracket)")
-    return LoadedImage(data=data, valid=valid, n_saturated=n_sat, n_masked=n_masked,
-                       source=source, exposure=exposure, reads=reads, samples=samples,
-                       quant_var=quant_var, exposures=tuple(exps), flat=flat)
+    img = LoadedImage(data=data, valid=valid, n_saturated=n_sat, n_masked=n_masked,
+                      source=source, exposure=exposure, reads=reads, samples=samples,
+                      quant_var=quant_var, exposures=tuple(exps), flat=flat)
+    return img if entry.binning == 1 else bin_image(img, entry.binning, saturated, ~mask_ok)
 
 
 def _merge(entry: ImageEntry, shape: tuple[int, int]
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """The frames of ``entry`` merged: ``sum(s_k) / sum(t_k)`` over unsaturated frames
     (all frames where none is), the unsaturated exposure sum (0 where none), the reads
-    (frames + darks) merged, the samples per pixel and the largest quantisation variance."""
+    (frames + darks) merged, the samples per pixel and the largest quantisation variance.
+    ``shape`` is camera.size; the files are ``entry.binning`` times that (cut)."""
     paths, exps, darks = list(entry.paths), list(entry.exposures), list(entry.darks)
-    num, den, nread, all_num = (np.zeros(shape + (3,)) for _ in range(4))
+    full = (shape[0] * entry.binning, shape[1] * entry.binning)
+    num, den, nread, all_num = (np.zeros(full + (3,)) for _ in range(4))
     dark_cache: dict[Path, Frame] = {}
     samples, qvar = None, 0.0
     for k, (path, t) in enumerate(zip(paths, exps)):
-        frame = linearise(_frame(path, shape, "image"), entry.response, path)
+        frame = linearise(_frame(path, shape, "image", entry.binning), entry.response, path,
+                          entry.response_curve)
         signal = frame.data
         if darks:
             dpath = darks[k if len(darks) > 1 else 0]
             if dpath not in dark_cache:
-                dark_cache[dpath] = linearise(_frame(dpath, shape, "dark frame"),
-                                              entry.response, dpath)
+                dark_cache[dpath] = linearise(_frame(dpath, shape, "dark frame", entry.binning),
+                                              entry.response, dpath, entry.response_curve)
             dark = dark_cache[dpath]
             if dark.level != frame.level or not np.array_equal(dark.samples, frame.samples):
                 raise ImageError(f"{dpath}: dark frame has saturation level {dark.level} (pixel "

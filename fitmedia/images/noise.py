@@ -293,7 +293,8 @@ def estimate_sensor_noise(img: LoadedImage, entry: ImageEntry, channels: tuple[i
     a, b = np.full(3, np.nan), np.full(3, np.nan)
     dark = None
     if entry.darks:
-        dark = linearise(read_frame(entry.darks[0]), entry.response, entry.darks[0]).data
+        dark = linearise(read_frame(entry.darks[0]), entry.response, entry.darks[0],
+                         entry.response_curve).data
     for ci in channels:
         ch = "RGB"[ci]
         t_map, n_map, v = img.exposure[..., ci], img.reads[..., ci], img.valid[..., ci]
@@ -366,8 +367,8 @@ def entry_noise(spec_noise: tuple[float, float] | None, noise_exposure: float | 
     fallback: it shows the bulb on black, with no range of levels to tell the gain from."""
     if spec_noise is not None:
         return spec_sensor_noise(*spec_noise, noise_exposure, entry, where)
-    try:
-        return estimate_sensor_noise(img, entry, channels, where)
+    try:  # a binned image's noise from its pixels before binning (independent, more of them)
+        return estimate_sensor_noise(img.unbinned or img, entry, channels, where)
     except InputError as exc:
         if fallback is None:
             raise
