@@ -392,7 +392,10 @@ def run_preview(*, spec: str | Path, out: str | Path, sub: int = 4) -> int:
     if parsed.images:
         parsed = load_spec(spec)  # checks that every file named exists
     fig, lines = preview_figure(parsed, sub=sub)
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    except OSError as exc:
+        raise InputError(f"--out: cannot write {path}: {exc.strerror or exc}") from None
     for line in lines:
         print(line)
     print(f"wrote {path}")
