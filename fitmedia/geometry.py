@@ -27,12 +27,64 @@ def pixel_grid(camera: Camera, *, sub: int = 1) -> tuple[np.ndarray, np.ndarray]
         np.broadcast_to(i, (camera.height, camera.width, sub * sub))
 
 
+def undistorted(camera: Camera, x, y) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised pinhole coordinates ((x - cx)/fx, (y - cy)/fy) of the ray that the camera
+    records at image point (x, y), y down: through ``camera.distortion`` when it has one
+    (fitmedia.distortion.undistort; OpenCV's normalised coordinates are the same, y down).
+    Points beyond a fold (possible only outside the image, which the spec checks) keep
+    Newton's last iterate."""
+    xn = (np.asarray(x, float) - camera.cx) / camera.fx
+    yn = (np.asarray(y, float) - camera.cy) / camera.fy
+    if camera.distortion is None:
+        return xn, yn
+    from .distortion import undistort
+
+    xu, yu, _ = undistort(camera.distortion, xn, yn)
+    return xu, yu
+
+
 def camera_rays(camera: Camera, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit directions (..., 3) of the pinhole rays through image points (x, y)."""
+    """Unit directions (..., 3) of the camera's rays through image points (x, y): the pinhole
+    of CAPTURE_SPEC.md, through the lens distortion when the camera has one."""
     f, r, u = camera.frame()
-    d = (f + ((np.asarray(x) - camera.cx) / camera.fx)[..., None] * r
-         - ((np.asarray(y) - camera.cy) / camera.fy)[..., None] * u)
+    xn, yn = undistorted(camera, x, y)
+    d = f + xn[..., None] * r - yn[..., None] * u
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def project(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Image points (x, y) where the camera (distortion included) records points (..., 3)
+    seen in a straight line (no refraction), and whether each is in front of the camera.
+    (x, y) are NaN for a direction beyond the distortion's fold (far outside the image:
+    the polynomial would bring it back in), found as one whose :func:`undistorted` differs."""
+    f, r, u = camera.frame()
+    d = np.asarray(points, float) - camera.position
+    depth = d @ f
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn, yn = (d @ r) / depth, -(d @ u) / depth
+    if camera.distortion is not None:
+        from .distortion import distort, undistort
+
+        xd, yd = distort(camera.distortion, xn, yn)
+        xu, yu, ok = undistort(camera.distortion, xd, yd)
+        ok &= np.hypot(xu - xn, yu - yn) <= 1e-9 * (1.0 + np.hypot(xn, yn))
+        xn, yn = np.where(ok, xd, np.nan), np.where(ok, yd, np.nan)
+    return camera.cx + camera.fx * xn, camera.cy + camera.fy * yn, depth > 0
+
+
+def pixel_angle(camera: Camera) -> float:
+    """Largest angle (radians, small-angle) one pixel spans anywhere in the image: 1/min(fx, fy)
+    for the pinhole (at the principal point); with distortion, the largest over the image of
+    the undistorted coordinates' step per pixel (a 17 x 17 grid, steps of 1/4 pixel)."""
+    base = 1.0 / min(camera.fx, camera.fy)
+    if camera.distortion is None:
+        return base
+    gx, gy = np.meshgrid(np.linspace(0, camera.width - 0.25, 17),
+                         np.linspace(0, camera.height - 0.25, 17))
+    x0, y0 = undistorted(camera, gx, gy)
+    x1, _ = undistorted(camera, gx + 0.25, gy)
+    _, y1 = undistorted(camera, gx, gy + 0.25)
+    return max(base, 4.0 * float(np.max(np.abs(x1 - x0))), 4.0 * float(np.max(np.abs(y1 - y0))))
 
 
 def fresnel_transmittance(cos_i: np.ndarray, n1: float, n2: float) -> np.ndarray:

@@ -16,6 +16,8 @@ Optional extensions (documented in ``docs/spec.md``):
   light (required for them; a curve file: a measured camera response, docs/spec.md).
 * ``images[].binning: N``: N x N pixels averaged after decoding (the camera block describes
   the binned image; docs/spec.md, "Binning").
+* ``camera.distortion`` / ``images[].camera.distortion``: OpenCV's lens distortion
+  (k1, k2, p1, p2, k3); the models render through it (docs/spec.md, "Lens distortion").
 """
 
 from __future__ import annotations
@@ -56,6 +58,8 @@ CAMERA_SCHEMA = {
         "fy": {"type": "number", "exclusiveMinimum": 0},
         "cx": _num, "cy": _num,
         "position": _vec3, "look_at": _vec3, "up": _vec3,
+        "distortion": {"type": "object", "additionalProperties": False,
+                       "properties": {k: _num for k in ("k1", "k2", "p1", "p2", "k3")}},
     },
 }
 
@@ -181,6 +185,9 @@ class Camera:
     position: np.ndarray
     look_at: np.ndarray
     up: np.ndarray
+    #: OpenCV's (k1, k2, p1, p2, k3) on normalised coordinates; None: none (all zero)
+    #: (docs/spec.md, "Lens distortion"; fitmedia.distortion)
+    distortion: tuple[float, float, float, float, float] | None = None
 
     def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(forward, right, true_up) unit vectors per CAPTURE_SPEC.md."""
@@ -287,11 +294,30 @@ def _check_finite(data: Any, where: str, path: tuple = ()) -> None:
         raise SpecError(where, _field_path(list(path)), f"got {data}: must be a finite number")
 
 
-def _camera(d: dict) -> Camera:
-    return Camera(width=int(d["size"][0]), height=int(d["size"][1]), fx=float(d["fx"]),
-                  fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
-                  position=np.asarray(d["position"], float), look_at=np.asarray(d["look_at"], float),
-                  up=np.asarray(d["up"], float))
+def _camera(d: dict, where: str = "<spec>", fld: str = "camera") -> Camera:
+    cam = Camera(width=int(d["size"][0]), height=int(d["size"][1]), fx=float(d["fx"]),
+                 fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
+                 position=np.asarray(d["position"], float), look_at=np.asarray(d["look_at"], float),
+                 up=np.asarray(d["up"], float))
+    return _with_distortion(cam, d.get("distortion"), where, f"{fld}.distortion")
+
+
+def _with_distortion(cam: Camera, dist: dict | None, where: str, fld: str) -> Camera:
+    """``cam`` with the spec's ``distortion`` block (keys absent are 0; all zero: None),
+    refused when the map is not one-to-one over the image (docs/spec.md, "Lens distortion")."""
+    from dataclasses import replace
+
+    from .distortion import KEYS, check_monotonic
+
+    coeffs = tuple(float((dist or {}).get(k, 0.0)) for k in KEYS)
+    if not any(coeffs):
+        return cam
+    why = check_monotonic(coeffs, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+    if why:
+        given = ", ".join(f"{k} {v:g}" for k, v in zip(KEYS, coeffs) if v)
+        raise SpecError(where, fld, f"got {given}: not monotonic over the {cam.width} x "
+                        f"{cam.height} image: {why}")
+    return replace(cam, distortion=coeffs)
 
 
 def _channel_values(v, channels: tuple[str, ...], where: str, fld: str) -> tuple[float, ...]:
@@ -349,7 +375,7 @@ def _image_entry(d: dict, base: Path, where: str, fld: str, spec_cam: dict, spec
     if "camera" in d:
         merged = {**spec_cam, **d["camera"]}
         _schema_check(merged, CAMERA_SCHEMA, where, f"{fld}.camera")
-        cam = _camera(merged)
+        cam = _camera(merged, where, f"{fld}.camera")
     if "light" in d:
         merged = {**spec_light, **d["light"]}
         if merged.get("type") != spec_light.get("type"):
@@ -418,6 +444,7 @@ def parse_spec(data: Any, *, source: str = "<spec>", base: Path | None = None,
     tank = Tank(tuple(float(x) for x in t["inner_size"]), float(t["front_wall"]["thickness"]),
                 float(t["front_wall"]["ior"]))
     channels = tuple(data.get("channels", CHANNELS))
+    camera = _camera(data["camera"], where)  # before the images' overrides, which inherit it
     images = tuple(_image_entry(d, base, where, f"images[{i}]", data["camera"], data["light"],
                                 require_images)
                    for i, d in enumerate(data.get("images", [])))
@@ -436,7 +463,7 @@ def parse_spec(data: Any, *, source: str = "<spec>", base: Path | None = None,
             raise SpecError(where, f"priors.{key}", f"got {priors[key]}: need [low, high] with low < high")
     water = data["medium"].get("water_kappa_a", 0.0)
     spec = Spec(source=source, name=str(data.get("name", Path(source).stem)), tank=tank,
-                medium_ior=float(data["medium"]["ior"]), camera=_camera(data["camera"]),
+                medium_ior=float(data["medium"]["ior"]), camera=camera,
                 light=_light(data["light"], where, "light"), images=images, clear_water=cw,
                 noise=noise, noise_exposure=(data.get("noise") or {}).get("exposure_s"),
                 channels=channels,

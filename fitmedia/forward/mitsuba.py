@@ -9,6 +9,12 @@ The scene is built from the capture spec in millimetres (see ``docs/mitsuba.md``
   right, y down, pixel (i, j) centred at (j + 0.5, i + 0.5)); a ``box``
   reconstruction filter so each pixel integrates its own footprint.  Mitsuba's
   perspective camera has square pixels: fx and fy must agree to 1e-3.
+  With ``camera.distortion`` (which the perspective sensor cannot do) the sensor
+  is a distortion-free pinhole (:func:`pinhole_cover`) at DISTORTION_OVERSAMPLE
+  (3) times the camera's resolution whose image covers every ray of the camera's
+  pixels, and each camera pixel is an area sample of that render over its
+  undistorted footprint (:func:`resampler`; error measured in
+  tests/test_distortion.py and docs/spec.md, "Lens distortion").
 * front wall: two smooth ``dielectric`` rectangles the size of the tank's
   front face, air/glass at z = depth/2 + thickness and glass/water at
   z = depth/2 (one air/water rectangle when the thickness is 0).
@@ -37,7 +43,7 @@ import time
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import pixel_grid, trace_to_water
+from ..geometry import pixel_grid, trace_to_water, undistorted
 from ..spec import Camera, Light, Spec
 from .base import check_render_args
 
@@ -46,6 +52,74 @@ log = logging.getLogger(__name__)
 #: Largest number of Monte Carlo samples (pixels x spp) traced in one wavefront.
 MAX_SAMPLES_PER_PASS = 1 << 22
 INTEGRATORS = ("volpath", "prbvolpath")
+#: with lens distortion: pinhole render pixels per camera pixel side (at the principal point)
+DISTORTION_OVERSAMPLE = 3
+#: with lens distortion: cells per camera pixel side whose footprints are area-sampled
+DISTORTION_SUB = 2
+
+
+def _edge_midpoints(cam: Camera, scale: int, sub: int) -> tuple[np.ndarray, ...]:
+    """Each camera pixel split into ``sub x sub`` cells: the undistorted midpoints of the cells'
+    left, right, top and bottom edges (u0, u1, v0, v1, each (H*sub, W*sub)) in the pixel units
+    of a pinhole with focal lengths ``scale`` fx, ``scale`` fy and principal point (0, 0)."""
+    xe = np.arange(cam.width * sub + 1) / sub      # cell edges
+    ye = np.arange(cam.height * sub + 1) / sub
+    xc, yc = 0.5 * (xe[1:] + xe[:-1]), 0.5 * (ye[1:] + ye[:-1])  # cell centres
+    gx, gy = np.meshgrid(xe, yc)                  # midpoints of the vertical edges
+    u, _ = undistorted(cam, gx, gy)
+    gx, gy = np.meshgrid(xc, ye)                  # midpoints of the horizontal edges
+    _, v = undistorted(cam, gx, gy)
+    u, v = u * (scale * cam.fx), v * (scale * cam.fy)
+    return u[:, :-1], u[:, 1:], v[:-1, :], v[1:, :]
+
+
+def pinhole_cover(cam: Camera, scale: int = DISTORTION_OVERSAMPLE,
+                  sub: int = DISTORTION_SUB) -> Camera:
+    """A distortion-free camera at ``cam``'s pose, focal lengths ``scale`` times ``cam``'s,
+    whose image covers the undistorted footprints of all of ``cam``'s pixels with a margin
+    of 2 pixels."""
+    import dataclasses
+
+    u0, u1, v0, v1 = _edge_midpoints(cam, scale, sub)
+    x0, y0 = math.floor(min(u0.min(), u1.min())) - 2, math.floor(min(v0.min(), v1.min())) - 2
+    x1, y1 = math.ceil(max(u0.max(), u1.max())) + 2, math.ceil(max(v0.max(), v1.max())) + 2
+    return dataclasses.replace(cam, width=x1 - x0, height=y1 - y0, fx=scale * cam.fx,
+                               fy=scale * cam.fy, cx=float(-x0), cy=float(-y0), distortion=None)
+
+
+def _overlaps(a: np.ndarray, b: np.ndarray, size: int) -> tuple[list, list]:
+    """Pixel indices and the shares of the interval [a, b] (a < b) that pixels [k, k+1] hold."""
+    first = np.floor(a).astype(int)
+    n = int(np.ceil(np.max(b - a))) + 1
+    idx = [first + k for k in range(n)]
+    share = [np.clip(np.minimum(b, k + 1) - np.maximum(a, k), 0.0, None) / (b - a) for k in idx]
+    return [np.clip(k, 0, size - 1) for k in idx], share
+
+
+def resampler(cam: Camera, cover: Camera, scale: int = DISTORTION_OVERSAMPLE,
+              sub: int = DISTORTION_SUB):
+    """Sparse (H*W, h*w) matrix from the ``cover`` pinhole image (h, w) to ``cam``'s pixels,
+    an area sample: each camera pixel is split into ``sub x sub`` cells, each cell's
+    undistorted footprint is taken as the axis-aligned rectangle through its edges'
+    midpoints, and the pinhole pixels are weighted by the exact share of that rectangle
+    they hold (without distortion: each camera pixel the mean of its scale x scale pixels)."""
+    from scipy import sparse
+
+    u0, u1, v0, v1 = _edge_midpoints(cam, scale, sub)
+    cols_j, wx = _overlaps(u0 + cover.cx, u1 + cover.cx, cover.width)
+    rows_i, wy = _overlaps(v0 + cover.cy, v1 + cover.cy, cover.height)
+    pix = np.arange(cam.height * cam.width).reshape(cam.height, cam.width)
+    pix = np.repeat(np.repeat(pix, sub, axis=0), sub, axis=1)
+    rows, cols, vals = [], [], []
+    for i, a in zip(rows_i, wy):
+        for j, b in zip(cols_j, wx):
+            w = (a * b).ravel()
+            keep = w > 0
+            rows.append(pix.ravel()[keep])
+            cols.append((i * cover.width + j).ravel()[keep])
+            vals.append(w[keep] / sub**2)
+    return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                             shape=(cam.height * cam.width, cover.height * cover.width))
 
 
 def single_scattering_depth(spec: Spec) -> int:
@@ -124,15 +198,21 @@ def _light_dict(mi, light: Light) -> dict:
 
 
 def scene_dict(mi, spec: Spec, image_index: int | None = 0, *, max_depth: int = -1,
-               integrator: str = "volpath") -> dict:
+               integrator: str = "volpath", sensor: Camera | None = None) -> dict:
     """The Mitsuba scene dictionary of one image of ``spec`` (unit light, clear medium).
 
     The medium has id ``water`` (parameters ``water.sigma_t.value.value``,
     ``water.albedo.value.value``, ``water.phase_function.g``), the light id ``light``.
+    ``sensor``: the camera rendered (default the image's; with lens distortion
+    :func:`pinhole_cover` of it).
     """
     if integrator not in INTEGRATORS:
         raise InputError(f"integrator: got {integrator!r}, expected one of {', '.join(INTEGRATORS)}")
     cam, light = _geometry_of(spec, image_index)
+    if sensor is not None:
+        cam = sensor
+    elif cam.distortion is not None:
+        cam = pinhole_cover(cam)
     hx, hy, hz = spec.tank.half
     t = spec.tank.wall_thickness
     n_w, n_g = spec.medium_ior, spec.tank.wall_ior
@@ -187,11 +267,15 @@ class MitsubaModel:
         Channels rendered, default ``spec.channels``.
     variant : str, optional
         Mitsuba variant; default: :func:`fitmedia.mitsuba_env.choose_variant`.
+    oversample : int
+        Only with ``camera.distortion``: pinhole render pixels per camera pixel side
+        (:func:`pinhole_cover`, :func:`resampler`); ``spp`` stays per camera pixel.
     """
 
     def __init__(self, spec: Spec, image_index: int | None = 0, *, spp: int = 256, max_depth: int = -1,
                  seed: int = 0, integrator: str = "volpath",
-                 channels: tuple[str, ...] | None = None, variant: str | None = None):
+                 channels: tuple[str, ...] | None = None, variant: str | None = None,
+                 oversample: int = DISTORTION_OVERSAMPLE):
         from ..mitsuba_env import import_mitsuba
 
         if int(spp) < 1:
@@ -206,10 +290,19 @@ class MitsubaModel:
         rays = trace_to_water(self.camera, spec.tank, spec.medium_ior, np.ravel(x), np.ravel(y))
         self.support = np.any(rays.factor.reshape(x.shape) > 0, axis=-1)
         self.spp, self.max_depth, self.seed = int(spp), int(max_depth), int(seed)
+        sensor, self._resample = self.camera, None
+        self._oversample = int(oversample)
+        if self.camera.distortion is not None:  # a pinhole render, resampled (module docstring)
+            if self._oversample < 1:
+                raise InputError(f"oversample: got {oversample}, expected a positive integer")
+            sensor = pinhole_cover(self.camera, self._oversample)
+            self._resample = resampler(self.camera, sensor, self._oversample)
+        self._render_shape = (sensor.height, sensor.width)
         self._mi = import_mitsuba(variant)
         self.variant = self._mi.variant()
         self._scene = self._mi.load_dict(scene_dict(self._mi, spec, image_index,
-                                                    max_depth=self.max_depth, integrator=integrator))
+                                                    max_depth=self.max_depth, integrator=integrator,
+                                                    sensor=sensor))
         self._params = self._mi.traverse(self._scene)
         self._state: tuple[float, float, float] | None = None
 
@@ -225,7 +318,7 @@ class MitsubaModel:
         self._state = (kt, albedo, g)
 
     def _pass_plan(self, spp: int) -> list[int]:
-        per = max(1, MAX_SAMPLES_PER_PASS // (self.shape[0] * self.shape[1]))
+        per = max(1, MAX_SAMPLES_PER_PASS // (self._render_shape[0] * self._render_shape[1]))
         n = -(-spp // per)
         base, extra = divmod(spp, n)
         return [base + (1 if k < extra else 0) for k in range(n)]
@@ -235,15 +328,21 @@ class MitsubaModel:
         return [int(s) for s in ss.generate_state(n, dtype=np.uint32)]
 
     def _render_unit(self, kt: float, albedo: float, g: float, spp: int, seed: int) -> np.ndarray:
-        """Mean over ``spp`` samples of the unit-light image (H, W), float64."""
+        """Mean over ``spp`` samples per camera pixel of the unit-light image (H, W), float64.
+        With distortion the pinhole render has oversample^2 pixels per camera pixel at the
+        centre, each with spp / oversample^2 samples (rounded up)."""
         self._set_medium(kt, albedo, g)
+        if self._resample is not None:
+            spp = -(-spp // self._oversample**2)
         plan = self._pass_plan(spp)
         seeds = [seed] if len(plan) == 1 else self._seeds(len(plan), seed)
-        acc = np.zeros(self.shape)
+        acc = np.zeros(self._render_shape)
         for n, s in zip(plan, seeds):
             img = np.asarray(self._mi.render(self._scene, spp=n, seed=s), dtype=np.float64)
             acc += n * (img[..., 0] if img.ndim == 3 else img)
-        return acc / spp
+        if self._resample is None:
+            return acc / spp
+        return (self._resample @ (acc / spp).ravel()).reshape(self.shape)
 
     def _batches(self, kappa_a, kappa_s, g, brightness, batches: int) -> np.ndarray:
         """Images of ``batches`` independent batches, shape (batches, H, W, C)."""

@@ -55,7 +55,7 @@ from collections import OrderedDict
 import numpy as np
 from scipy import sparse
 
-from ..geometry import WaterRays, pixel_grid, trace_to_water
+from ..geometry import WaterRays, pixel_angle, pixel_grid, trace_to_water
 from ..medium import hg_phase_half_angle
 from ..spec import Camera, Spec
 from .base import check_render_args
@@ -193,7 +193,7 @@ class SingleScattering:
         if self.light.type == "bulb":
             centre, _, _ = self._rays(1)
             h_c = self._closest(centre, c)[1].reshape(self.shape)
-            footprint = np.linalg.norm(c - self.camera.position) / min(self.camera.fx, self.camera.fy)
+            footprint = np.linalg.norm(c - self.camera.position) * pixel_angle(self.camera)
             zone = h_c < self.light.radius + HALO_FOOTPRINTS * footprint
             sub_map[zone] = max(sub, halo_sub)
             sub_map[h_c < self.light.radius + 2.0 * footprint] = max(sub, bulb_sub)
