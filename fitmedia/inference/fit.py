@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..geometry import project
 from ..images import LoadedImage, checks, load_entry
 from ..images.noise import entry_noise, noise_summary
 from ..spec import CHANNELS, Spec
@@ -103,11 +104,11 @@ def why_bulb_unseen(spec: Spec) -> str:
         return (f"the line of sight to it crosses the front wall's plane at x = {at[0]:.0f}, "
                 f"y = {at[1]:.0f} mm, outside the wall's opening |x| < {half[0]:g}, "
                 f"|y| < {half[1]:g} mm (it is behind a side wall as seen from the camera)")
-    f, r, u = cam.frame()
-    depth = float(d @ f)
-    if not depth > 0:
+    px, py, ahead = project(cam, spec.light.position)  # through camera.distortion, if any
+    if not ahead:
         return "it is behind the camera (camera.look_at points away from it)"
-    px, py = cam.cx + cam.fx * float(d @ r) / depth, cam.cy - cam.fy * float(d @ u) / depth
+    if not (np.isfinite(px) and np.isfinite(py)):
+        return "it is outside the image, beyond the fold of camera.distortion"
     if not (0 <= px <= cam.width and 0 <= py <= cam.height):
         return (f"it projects outside the image, near pixel ({px:.0f}, {py:.0f}) of a "
                 f"{cam.width} x {cam.height} image (check camera.look_at, fx, fy, cx, cy)")
