@@ -376,9 +376,10 @@ class Calibration:
     n_corners: int
 
 
-def calibrate_views(views, size: tuple[int, int], names: list) -> Calibration:
-    """``cv2.calibrateCameraExtended`` on the views, with the checks that its focal
-    length is determined (module constants; docs/calibrate.md, "Views").
+def calibrate_views(views, size: tuple[int, int], names: list, *,
+                    fix_k3: bool = False) -> Calibration:
+    """``cv2.calibrateCameraExtended`` on the views (k3 held at 0 with ``fix_k3``), with
+    the checks that its focal length is determined (module constants; docs/calibrate.md).
 
     Raises
     ------
@@ -394,7 +395,8 @@ def calibrate_views(views, size: tuple[int, int], names: list) -> Calibration:
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     try:
         rms, K, dist, rvecs, tvecs, sd, _, per_view = cv2.calibrateCameraExtended(
-            [o for o, _ in views], [i for _, i in views], size, None, None, criteria=crit)
+            [o for o, _ in views], [i for _, i in views], size, None, None,
+            flags=cv2.CALIB_FIX_K3 if fix_k3 else 0, criteria=crit)
     except cv2.error as exc:
         raise InputError(f"{names[0]}: OpenCV's calibration failed on these views "
                          f"({' '.join(str(exc).split())[-120:]})") from None
@@ -413,6 +415,36 @@ def calibrate_views(views, size: tuple[int, int], names: list) -> Calibration:
                          "board tilted 20-45 deg in different directions (docs/calibrate.md)")
     return Calibration(K, np.ravel(dist)[:5], list(rvecs), list(tvecs), float(rms),
                        np.ravel(per_view), sd[:9], tilts, int(sum(len(o) for o, _ in views)))
+
+
+def fold_reason(block: dict) -> str | None:
+    """Why the block's distortion folds back over its image (the spec parser refuses such a
+    camera: ``fitmedia.distortion.check_monotonic``), or None."""
+    from .distortion import KEYS, check_monotonic
+
+    coeffs = tuple(block["distortion"][k] for k in KEYS)
+    return check_monotonic(coeffs, block["size"][0], block["size"][1], block["fx"], block["fy"],
+                           block["cx"], block["cy"])
+
+
+def _calibrate_unfolded(views, size: tuple[int, int], used: list, bd: Board):
+    """The calibration and its camera block; refitted with k3 = 0 (warned) when the full
+    model's distortion folds back inside the image, refused when that folds too."""
+    cal = calibrate_views(views, size, used)
+    block = camera_block(cal.K, cal.dist, cal.rvecs[0], cal.tvecs[0], size, bd)
+    why = fold_reason(block)
+    if why is None:
+        return cal, block
+    _warn(f"the fitted distortion is not one-to-one over the image ({why}); refitted with "
+          "k3 = 0: add views with the board's corners near the image's edges and corners")
+    cal = calibrate_views(views, size, used, fix_k3=True)
+    block = camera_block(cal.K, cal.dist, cal.rvecs[0], cal.tvecs[0], size, bd)
+    why = fold_reason(block)
+    if why is not None:
+        raise InputError(f"{used[0]}: the fitted lens distortion folds back inside the image "
+                         f"even with k3 = 0 ({why}); add views with the board's corners near "
+                         "the image's edges and corners (docs/calibrate.md)")
+    return cal, block
 
 
 def _fmt(x: float) -> str:
@@ -466,8 +498,7 @@ def run_calibrate(*, images: list, board: str | Path, out: str | Path) -> int:
     bd = load_board(board)
     paths = [Path(p) for p in images]
     views, used, size = _detect_all(paths, make_board(bd), bd)
-    cal = calibrate_views(views, size, used)
-    block = camera_block(cal.K, cal.dist, cal.rvecs[0], cal.tvecs[0], size, bd)
+    cal, block = _calibrate_unfolded(views, size, used, bd)
     if not block["position"][2] > bd.wall_z_mm:
         raise InputError(f"{board}: placement: the camera comes out at z = "
                          f"{block['position'][2]:.1f} mm, not in front of the front wall "

@@ -136,32 +136,10 @@ def _run_cli(*args: str | Path) -> subprocess.CompletedProcess:
 
 
 def _spec_camera(block: dict):
-    """The block parsed as a spec's camera by fitmedia's parser (geometry of conftest).
-
-    While the spec does not yet accept ``camera.distortion`` (issue 16, landing separately),
-    the block is parsed without it: the rest must be accepted as it is.
-    """
-    from fitmedia.errors import SpecError
-
+    """The block parsed as a spec's camera by fitmedia's parser (geometry of conftest)."""
     data = geometry_dict(width=SIZE[0], height=SIZE[1])
     data["camera"] = dict(block)
-    try:
-        return parse_spec(data, require_images=False).camera
-    except SpecError as exc:
-        if "distortion" not in str(exc):
-            raise
-    data["camera"].pop("distortion")
     return parse_spec(data, require_images=False).camera
-
-
-def _undistort(cam, dist: dict, x: np.ndarray, y: np.ndarray):
-    """fitmedia image points (x, y) -> undistorted ones, by OpenCV's model on the
-    normalised coordinates ((x - cx)/fx, (y - cy)/fy) (docs/calibrate.md)."""
-    pts = np.stack([(x - cam.cx) / cam.fx, (y - cam.cy) / cam.fy], -1).reshape(-1, 1, 2)
-    d = np.array([dist[k] for k in ("k1", "k2", "p1", "p2", "k3")])
-    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    n = cv2.undistortPointsIter(pts, np.eye(3), d, None, None, crit).reshape(-1, 2)
-    return cam.cx + cam.fx * n[:, 0], cam.cy + cam.fy * n[:, 1]
 
 
 def _angle_px(d1: np.ndarray, d2: np.ndarray, f: float) -> np.ndarray:
@@ -236,9 +214,8 @@ def test_calibrate_recovers_known_camera(cli_run):
     d = np.column_stack([n, np.ones(len(n))]) @ Rt
     P = CAM_POS + ((0.0 - CAM_POS[2]) / d[:, 2])[:, None] * d
     uv = cv2.projectPoints(P, cv2.Rodrigues(Rt)[0], -Rt @ CAM_POS, K_TRUE, DIST_TRUE)[0]
-    xu, yu = uv[:, 0, 0] + 0.5, uv[:, 0, 1] + 0.5
-    if getattr(cam, "distortion", None) is None:  # camera_rays without distortion (yet)
-        xu, yu = _undistort(cam, block["distortion"], xu, yu)
+    assert cam.distortion == tuple(block["distortion"][k] for k in ("k1", "k2", "p1", "p2", "k3"))
+    xu, yu = uv[:, 0, 0] + 0.5, uv[:, 0, 1] + 0.5  # camera_rays undistorts (fitmedia.distortion)
     to_p = (P - cam.position) / np.linalg.norm(P - cam.position, axis=1, keepdims=True)
     err = _angle_px(camera_rays(cam, xu, yu), to_p, cam.fx)
     print(f"reprojection of z = 0 tank points, inner 80 %: max {err.max():.3f} px")
@@ -249,7 +226,9 @@ def test_rms_figure_and_warning(views, cli_run, capsys, monkeypatch):
     """Reference: the RMS recomputed here with cv2.projectPoints from the detected corners
     and the calibration's parameters equals the written rms_reprojection_error_px; it is
     below the 0.5 px warning level for these views (corner noise ~0.1 px); with the level
-    lowered below it the warning is printed and the file still written."""
+    lowered below it the warning is printed and the file still written.  A distortion that
+    folds back over the image (here: any with k3 != 0, by a stand-in check) is refitted
+    with k3 = 0 and warned about."""
     r, out, _ = cli_run
     m = re.search(r"^# rms_reprojection_error_px: ([0-9.]+)$", out.read_text(), re.M)
     assert m, out.read_text()
@@ -264,10 +243,15 @@ def test_rms_figure_and_warning(views, cli_run, capsys, monkeypatch):
     assert 0.0 < written < cal.WARN_RMS_PX
     assert "RMS reprojection" not in r.stderr
     monkeypatch.setattr(cal, "WARN_RMS_PX", written / 2)
+    # and a distortion said to fold back unless k3 = 0: refitted with k3 = 0, warned
+    real_fold = cal.fold_reason
+    monkeypatch.setattr(cal, "fold_reason",
+                        lambda b: "test" if b["distortion"]["k3"] != 0 else real_fold(b))
     out2 = out.parent / "camera2.yaml"
     assert cal.run_calibrate(images=views, board=views[0].parent / "board.yaml", out=out2) == 0
-    assert "warning: RMS reprojection error" in capsys.readouterr().err
-    assert out2.is_file()
+    err = capsys.readouterr().err
+    assert "warning: RMS reprojection error" in err and "refitted with k3 = 0" in err
+    assert yaml.safe_load(out2.read_text())["camera"]["distortion"]["k3"] == 0
 
 
 def test_blank_image_exit_2(tmp_path, views):
@@ -340,3 +324,22 @@ def test_board_png_round_trip(tmp_path):
     assert found is not None and len(found[0]) == 7 * 5
     obj, pts = found
     assert np.abs(obj[:, :2] * px_mm - 0.5 + 20 - pts).max() < 0.2
+
+
+def test_fold_reason():
+    """Reference: fitmedia.distortion.check_monotonic (the spec parser's check).  The test
+    camera's distortion is one-to-one over its 640 x 480 image; with k1 = -0.5 alone the
+    distorted radius r (1 - 0.5 r^2) is at most 0.54 (at r = 0.82), short of the image
+    corner's normalised radius 0.67: no direction reaches the corners, and the spec parser
+    refuses that block too."""
+    from fitmedia.errors import SpecError
+
+    block = {"size": list(SIZE), "fx": 600.0, "fy": 597.0, "cx": 323.9, "cy": 236.6,
+             "distortion": dict(zip(("k1", "k2", "p1", "p2", "k3"), DIST_TRUE.tolist()))}
+    assert cal.fold_reason(block) is None
+    block["distortion"] = {"k1": -0.5, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0}
+    assert cal.fold_reason(block) is not None
+    data = geometry_dict(width=SIZE[0], height=SIZE[1])
+    data["camera"].update(block)
+    with pytest.raises(SpecError, match="distortion"):
+        parse_spec(data, require_images=False)
