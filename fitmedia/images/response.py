@@ -62,6 +62,27 @@ def curve_quantum(curve: np.ndarray) -> float:
     return float(pos.min()) if pos.size else 1.0
 
 
+def _fill_unseen(curve: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
+    """Robertson's curve is NaN at code values no frame holds: filled by linear interpolation
+    between measured ones and, beyond them, the straight line through the last two (at least
+    0).  Returns the curve and the range of codes measured in every channel."""
+    out = curve.copy()
+    codes = np.arange(curve.shape[0], dtype=float)
+    lo, hi = 0, curve.shape[0] - 1
+    for c in range(curve.shape[1]):
+        ok = np.isfinite(curve[:, c]) & (curve[:, c] > 0)
+        if np.count_nonzero(ok) < 2:
+            raise InputError("calibrate_response: the bracket holds fewer than 2 distinct values "
+                             f"in channel {'RGB'[c]}; photograph a scene with a range of tones")
+        x, y = codes[ok], curve[ok, c]
+        out[:, c] = np.interp(codes, x, y)
+        left, right = codes < x[0], codes > x[-1]
+        out[left, c] = y[0] + (codes[left] - x[0]) * (y[1] - y[0]) / (x[1] - x[0])
+        out[right, c] = y[-1] + (codes[right] - x[-1]) * (y[-1] - y[-2]) / (x[-1] - x[-2])
+        lo, hi = max(lo, int(x[0])), min(hi, int(x[-1]))
+    return np.maximum(out, 0.0), (lo, hi)
+
+
 def calibrate_response(paths: Sequence[str | Path], exposures: Sequence[float],
                        out: str | Path, *, method: str = "debevec", samples: int = 70,
                        smoothness: float = 10.0) -> np.ndarray:
@@ -99,8 +120,9 @@ def calibrate_response(paths: Sequence[str | Path], exposures: Sequence[float],
     cal = (cv2.createCalibrateDebevec(samples=samples, lambda_=smoothness) if method == "debevec"
            else cv2.createCalibrateRobertson())
     curve = np.asarray(cal.process(frames, times), np.float64).reshape(256, 3)[:, ::-1]
+    curve, seen = _fill_unseen(curve)
     head = (f"fitmedia response curve ({method}, {len(paths)} frames): linear value per code "
-            "value 0-255, columns R,G,B")
+            f"value 0-255, columns R,G,B; codes {seen[0]}-{seen[1]} measured, others filled")
     from ..util import atomic_write
 
     atomic_write(out, lambda tmp: np.savetxt(tmp, curve, delimiter=",", header=head, fmt="%.8g"))
