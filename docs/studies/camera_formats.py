@@ -1,86 +1,76 @@
 """The same synthetic capture written as a float TIFF, a 3-frame 16-bit bracket with a dark
-frame, and Bayer DNGs, each fitted (MAP only): issue 16, docs/spec.md "Camera formats compared".
+frame, and Bayer DNGs, each fitted (the fit's own MAP search, no MCMC) with Laplace standard
+deviations: issue 16, docs/spec.md "Camera formats compared".
 
-Run: python docs/studies/camera_formats.py [SEED] [OUT_DIR]  (about 2 CPU-minutes per format)
+Per format and channel it prints the MAP, the Laplace sd of log kappa_t, log kappa_s and
+atanh g, the z-scores against the truth and between formats, chi2/pixel at the MAP and at the
+TRUE parameters (true brightness: the per-pixel variance is right when it is ~1 within
+sqrt(2 / n)).  The writers and the posterior are those of tests/test_camera_formats.py.
+
+Run: PYTHONPATH=. python docs/studies/camera_formats.py [SEED] [OUT_DIR]
+     (64x48, three channels; about 2 CPU-minutes per format)
 """
 from __future__ import annotations
 
-import copy
 import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import tifffile
-import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / 'tests'))
-from conftest import geometry_dict
-from test_raw import write_bayer_dng
-from fitmedia.spec import parse_spec
-from fitmedia.medium import medium_by_name
-from fitmedia.forward.single import SingleScattering
-from fitmedia.inference.fit import FitOptions
-from fitmedia.pipeline import fit
-from fitmedia.images import write_float_tiff
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
+from conftest import geometry_dict  # noqa: E402
+from test_camera_formats import (channel_problem, laplace_sd, render_truth,  # noqa: E402
+                                 truth_vector, write_formats)
 
-OUT = Path(sys.argv[2] if len(sys.argv) > 2 else 'camera_formats_out'); W, H = 64, 48; ML = 16.0; TANK = 23000.0
-A, B = 2.0, 25.0   # DN per electron, read variance DN^2 (per stored sample)
-rng = np.random.default_rng(int(sys.argv[1]) if len(sys.argv) > 1 else 7)
-geo = geometry_dict(width=W, height=H)
-spec = parse_spec(geo, require_images=False)
-med = medium_by_name('Lowfat Milk')
-c = ML / TANK
-model = SingleScattering(spec, None, channels=("R", "G", "B"), supersample=2)
-L = model.render(c * med.kappa_a, c * med.kappa_s, med.g, np.ones(3))      # image units
-L0 = model.render(0 * med.kappa_a, 0 * med.kappa_s, med.g, np.ones(3))     # clear water
+from fitmedia.inference.fit import FitOptions, prepare, run_channels  # noqa: E402
+from fitmedia.spec import load_spec  # noqa: E402
 
-def shot(mean_dn):
-    return A * rng.poisson(np.clip(mean_dn, 0, None) / A) + rng.normal(0, np.sqrt(B), mean_dn.shape)
+SEED = int(sys.argv[1]) if len(sys.argv) > 1 else 7
+OUT = Path(sys.argv[2] if len(sys.argv) > 2 else "camera_formats_out")
+W, H = 64, 48
 
-def spec_with(name, img, clear, noise, extra=None):
-    d = copy.deepcopy(geo); d['name'] = name
-    d['images'] = [dict(img, concentration=c)]; d['calibration'] = {'clear_water': clear}
-    d['noise'] = noise
-    p = OUT / name / 'capture.yaml'; p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(yaml.safe_dump(d)); return p
 
-specs = {}
-# (a) float TIFF, one frame, K = 20000 DN/s per image unit, t = 1 s
-K = 2.0e4
-d = OUT / 'float'; d.mkdir(parents=True, exist_ok=True)
-write_float_tiff(d / 'm.tiff', shot(K * L)); write_float_tiff(d / 'w.tiff', shot(K * L0))
-specs['float'] = spec_with('float', {'path': 'm.tiff', 'exposure_s': 1.0},
-                           {'path': 'w.tiff', 'exposure_s': 1.0}, {'gain': A, 'read_var': B})
-# (b) 16-bit bracket 1, 0.25, 0.0625 s, K = 2e5 DN/s, pedestal 500, one shared dark
-Kb, ped, ts = 2.0e5, 500.0, [1.0, 0.25, 0.0625]
-d = OUT / 'bracket'; d.mkdir(parents=True, exist_ok=True)
-def u16(x): return np.clip(np.round(x), 0, 65535).astype(np.uint16)
-for tag, img in (('m', L), ('w', L0)):
-    for k, t in enumerate(ts):
-        tifffile.imwrite(d / f'{tag}{k}.tif', u16(ped + shot(Kb * t * img)), photometric='rgb')
-tifffile.imwrite(d / 'dark.tif', u16(ped + rng.normal(0, np.sqrt(B), L.shape)), photometric='rgb')
-br = lambda tag: {'path': [f'{tag}{k}.tif' for k in range(3)], 'exposure_s': ts,
-                  'dark': 'dark.tif', 'response': 'linear'}
-specs['bracket'] = spec_with('bracket', br('m'), br('w'), {'gain': A, 'read_var': B, 'exposure_s': 1.0})
-# (c) Bayer DNG, each binned pixel's four sites see its radiance, K = 1.2e4, black 512
-Kd, black = 1.2e4, 512
-d = OUT / 'dng'; d.mkdir(parents=True, exist_ok=True)
-for tag, img in (('m', L), ('w', L0)):
-    site = np.empty((2 * H, 2 * W))
-    for (i, j), ch in zip(((0, 0), (0, 1), (1, 0), (1, 1)), (0, 1, 1, 2)):
-        site[i::2, j::2] = black + shot(Kd * img[..., ch])
-    write_bayer_dng(d / f'{tag}.dng', np.clip(np.round(site), 0, 16383), black=(black,) * 4)
-specs['dng'] = spec_with('dng', {'path': 'm.dng', 'exposure_s': 1.0},
-                         {'path': 'w.dng', 'exposure_s': 1.0}, {'gain': A, 'read_var': B})
-truth = {ch: dict(kappa_t=float(med.kappa_a[i] + med.kappa_s[i]), kappa_s=float(med.kappa_s[i]),
-                  g=float(med.g[i])) for i, ch in enumerate('RGB')}
-print('truth', json.dumps(truth))
-for name, p in specs.items():
-    t0 = time.time()
-    res = fit(p, OUT / name / 'fit', FitOptions(mcmc=False, workers=1, progress=False), report=False)
-    pars = res['parameters']; dg = res['diagnostics']['channels']
-    row = {ch: {k: round(pars[k][ch]['map'], 4) for k in ('kappa_t', 'kappa_s', 'g')} for ch in 'RGB'}
-    chi = {ch: round(dg[ch].get('chi2_per_pixel_map', dg[ch].get('chi2_per_pixel', float('nan'))), 3) for ch in 'RGB'}
-    print(name, f'{time.time() - t0:.0f}s', json.dumps(row), 'chi2/px', chi, flush=True)
+def main() -> None:
+    geo = geometry_dict(width=W, height=H)
+    lit, clear, truth, c = render_truth(geo, ("R", "G", "B"))
+    formats = write_formats(OUT, geo, lit, clear, c, np.random.default_rng(SEED))
+    print("truth", json.dumps(truth))
+    rows = {}
+    for name, (path, k) in formats.items():
+        t0 = time.process_time()
+        prep = prepare(load_spec(path))
+        fits = run_channels(prep, FitOptions(mcmc=False, workers=1, progress=False), None)
+        rows[name] = {}
+        for ch, t in truth.items():
+            f = fits[ch]
+            problem, space = channel_problem(prep, ch)
+            chi2_t, n = problem.chi2(truth_vector(space, t, k))
+            problem.adapt(f["x_map"])  # the fit's quadrature at its MAP
+            est, sd = laplace_sd(problem, space, f["x_map"], f["laplace_cov"])
+            ref = np.log([t["kappa_t"], t["kappa_s"]]).tolist() + [np.arctanh(t["g"])]
+            rows[name][ch] = {
+                "kappa_t": float(np.exp(est[0])), "kappa_s": float(np.exp(est[1])),
+                "g": float(np.tanh(est[2])), "sd": sd.round(4).tolist(), "est": est,
+                "z_truth": ((est - ref) / sd).round(2).tolist(),
+                "chi2_map": round(f["chi2"][0] / f["chi2"][1], 3),
+                "chi2_truth": round(chi2_t / n, 3), "n": n,
+                "chi2_truth_sd": round(float(np.sqrt(2.0 / n)), 3)}
+        print(name, f"{time.process_time() - t0:.0f} s CPU", flush=True)
+        for ch, r in rows[name].items():
+            print(f"  {ch}: kappa_t {r['kappa_t']:.3f} kappa_s {r['kappa_s']:.3f} g {r['g']:.4f}"
+                  f"  sd(log kt, log ks, atanh g) {r['sd']}  z vs truth {r['z_truth']}"
+                  f"  chi2/px MAP {r['chi2_map']} truth {r['chi2_truth']} (n {r['n']}, "
+                  f"sd {r['chi2_truth_sd']})", flush=True)
+    names = list(rows)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            z = {ch: ((rows[a][ch]["est"] - rows[b][ch]["est"])
+                      / np.hypot(rows[a][ch]["sd"], rows[b][ch]["sd"])).round(2).tolist()
+                 for ch in truth}
+            print(f"z {a} - {b} (log kt, log ks, atanh g):", json.dumps(z))
+
+
+if __name__ == "__main__":
+    main()
