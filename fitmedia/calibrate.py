@@ -491,6 +491,17 @@ def run_calibrate(*, images: list, board: str | Path, out: str | Path) -> int:
 
     Bad input raises :class:`~fitmedia.errors.InputError` (the CLI's exit code 2).
     """
+    import cv2
+
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # a broken file: 1 line
+    try:
+        return _run(images, board, out)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
+def _run(images: list, board: str | Path, out: str | Path) -> int:
     from .util import atomic_write_text
 
     if Path(out).is_dir():

@@ -287,7 +287,7 @@ def test_bad_board_file(tmp_path, change, field):
         cal.load_board(tmp_path / "missing.yaml")
 
 
-def test_bad_images(tmp_path, views):
+def test_bad_images(tmp_path, views, capfd):
     """Unreadable image, images of different sizes, a pose view without the board, too few
     views, views that are all fronto-parallel, --out a folder: InputError naming the file
     or the need."""
@@ -306,6 +306,7 @@ def test_bad_images(tmp_path, views):
         with pytest.raises(InputError, match=msg):
             cal.run_calibrate(images=imgs, board=board, out=out)
     assert not out.exists()
+    assert "grfmt_png" not in capfd.readouterr().err  # OpenCV's own log kept quiet
     with pytest.raises(InputError, match="--out is a folder"):
         cal.run_calibrate(images=views, board=board, out=tmp_path)
 
