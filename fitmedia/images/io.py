@@ -639,6 +639,16 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
     if flat is not None:
         data = data / flat
     saturated = ~usable[..., chans].all(axis=2)
+    n_sat, n_masked = _check_usable(source, saturated, mask_ok)
+    img = LoadedImage(data=data, valid=valid, n_saturated=n_sat, n_masked=n_masked,
+                      source=source, exposure=exposure, reads=reads, samples=samples,
+                      quant_var=quant_var, exposures=tuple(exps), flat=flat)
+    return img if entry.binning == 1 else bin_image(img, entry.binning, saturated, ~mask_ok)
+
+
+def _check_usable(source: str, saturated: np.ndarray, mask_ok: np.ndarray) -> tuple[int, int]:
+    """The counts of saturated and masked pixels; refused when more than
+    ``MAX_UNUSABLE_FRACTION`` of the pixels are either."""
     n_sat, n_masked = int(np.count_nonzero(saturated)), int(np.count_nonzero(~mask_ok))
     frac = np.count_nonzero(saturated | ~mask_ok) / saturated.size
     if frac > MAX_UNUSABLE_FRACTION:
@@ -648,10 +658,7 @@ def load_entry(entry: ImageEntry, *, expected_shape: tuple[int, int],
                 f"{fm:.0f}% masked)")
         raise ImageError(f"{source}: {what}; at most {100 * MAX_UNUSABLE_FRACTION:.0f}% may be "
                          "unusable (use a shorter exposure or an exposure bracket)")
-    img = LoadedImage(data=data, valid=valid, n_saturated=n_sat, n_masked=n_masked,
-                      source=source, exposure=exposure, reads=reads, samples=samples,
-                      quant_var=quant_var, exposures=tuple(exps), flat=flat)
-    return img if entry.binning == 1 else bin_image(img, entry.binning, saturated, ~mask_ok)
+    return n_sat, n_masked
 
 
 def _merge(entry: ImageEntry, shape: tuple[int, int]

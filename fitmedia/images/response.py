@@ -101,21 +101,21 @@ def calibrate_response(paths: Sequence[str | Path], exposures: Sequence[float],
     """
     import cv2
 
-    from .io import _read_any
-
     if method not in METHODS:
         raise InputError(f"method: {method!r} is not one of {', '.join(METHODS)}")
     if len(paths) < 2 or len(exposures) != len(paths) or not all(t > 0 for t in exposures):
         raise InputError(f"calibrate_response: {len(paths)} frames with exposures {list(exposures)};"
                          " give 2 or more frames of one scene, one positive exposure each")
     frames = []
-    for p in paths:
-        arr = _read_any(p)
-        if arr.dtype != np.uint8 or arr.ndim != 3 or arr.shape[2] < 3:
-            raise InputError(f"{p}: OpenCV's response calibration takes 8-bit RGB images")
+    for p in paths:  # OpenCV's own reader: B, G, R order, as its calibration wants
+        buf = np.fromfile(p, dtype=np.uint8) if Path(p).is_file() else np.zeros(0, np.uint8)
+        arr = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+        if arr is None or arr.dtype != np.uint8 or arr.ndim != 3 or arr.shape[2] < 3:
+            raise InputError(f"{p}: not a readable 8-bit RGB image (OpenCV's response "
+                             "calibration takes 8-bit frames)")
         if frames and arr.shape[:2] != frames[0].shape[:2]:
             raise InputError(f"{p}: frames of one bracket must be of one size")
-        frames.append(np.ascontiguousarray(arr[..., 2::-1]))  # RGB -> OpenCV's BGR
+        frames.append(np.ascontiguousarray(arr[..., :3]))
     times = np.asarray(exposures, np.float32)
     cal = (cv2.createCalibrateDebevec(samples=samples, lambda_=smoothness) if method == "debevec"
            else cv2.createCalibrateRobertson())
