@@ -343,7 +343,8 @@ def linearise(frame: Frame, response: str | None, path: Path,
                                     "non-black values lie between 10% and 90% of full scale)")
     raise ImageError(f"{path}: a {bits}-bit image may carry a tone curve{seen}; declare on its "
                      "image entry 'response: srgb' (sRGB-encoded, decoded by fitmedia) or "
-                     "'response: linear' (it holds linear sensor values)")
+                     "'response: linear' (it holds linear sensor values), or a measured curve "
+                     "'response: {curve: FILE}' (docs/spec.md, \"Measured response\")")
 
 
 def read_image(path: str | Path) -> tuple[np.ndarray, float | None]:
