@@ -192,6 +192,15 @@ def _wrong_size(key: str):
     return mutate
 
 
+def _curve_rows(data: dict, d: Path, base: Path) -> None:
+    """images[0]: a 16-bit file with a 256-row (8-bit) response curve."""
+    np.savetxt(d / "curve.csv", np.linspace(0.0, 1.0, 256)[:, None] ** 2.2 * np.ones(3),
+               delimiter=",")
+    data["images"][0].update(path=_tiff(str(d / "a16.tiff"), np.full((H, W, 3), 900, np.uint16)),
+                             response={"curve": "curve.csv"})
+    data["images"][0].pop("saturation", None)
+
+
 BOMB = "\n".join([f"l0: &l0 [{', '.join(['lol'] * 9)}]"]
                  + [f"l{k}: &l{k} [{', '.join([f'*l{k - 1}'] * 9)}]" for k in range(1, 10)])
 FIT = ["fit", "{d}/spec.yaml", "--out", "{d}/out", "--no-mcmc", "--quiet"]
@@ -270,6 +279,11 @@ def cases() -> list[Case]:
              ["mask.tiff", "7x5", "expected 16x12"], _spec(_wrong_size("mask"))),
         Case("flat_wrong_size", "image of the wrong size", FIT, 2,
              ["flat.tiff", "7x5", "expected 16x12"], _spec(_wrong_size("flat"))),
+        Case("binning_wrong_size", "image of the wrong size", FIT, 2,
+             ["expected 48x36", "times binning 3"],
+             _spec(lambda d, *_: d["images"][0].update(binning=3))),
+        Case("curve_rows_for_16_bit", "response curve", FIT, 2,
+             ["curve.csv", "256 rows", "16-bit image needs 65536 rows"], _spec(_curve_rows)),
         Case("black_image", "black or saturated image", FIT, 2,
              ["black.tiff", "a black image"], _spec(_black)),
         Case("wholly_saturated", "black or saturated image", FIT, 2,
