@@ -181,16 +181,17 @@ def test_mitsuba_resampler_area_sample_error():
 @pytest.mark.mitsuba
 def test_mitsuba_renders_through_the_distortion():
     """Reference: SingleScattering with the same distortion.  Mitsuba (32 x 24, single-
-    scattering depth): (a) clear water: the bulb's centroid matches the analytic model's
-    within 0.1 px (it moves 0.7 px with the distortion: a flipped or mirrored resampling
-    would miss); (b) dilute milk, g = 0.5: the glow beyond 3 bulb radii agrees on average
-    within 3 % (the resampling's own error at this size is ~0.1 % for g = 0.5 (see the test
-    above at 64 x 48), the rest is Monte Carlo: 256 spp, its standard error printed and
-    required below 1 %)."""
+    scattering depth; the bulb far off-axis): (a) clear water: the bulb's centroid matches
+    the analytic model's within 0.1 px (measured 0.006 px; the distortion moves it 0.84 px:
+    a flipped or mirrored resampling would miss); (b) dilute milk, g = 0.5: the glow beyond
+    3 bulb radii agrees in sum within 3 Monte Carlo standard errors (1024 spp, 8 batches; the
+    error printed and required below 1 %) plus 0.5 % for the resampling (the test above)."""
     from fitmedia.forward.mitsuba import MitsubaModel, single_scattering_depth
     from fitmedia.forward.single import SingleScattering
 
-    spec = parse_spec(wide_dict(32, 24, light_at=(90.0, 55.0, 60.0)), require_images=False)
+    d = wide_dict(32, 24, light_at=(120.0, 95.0, 100.0))
+    d["light"]["radius"] = 10.0
+    spec = parse_spec(d, require_images=False)
     depth = single_scattering_depth(spec)
     m = MitsubaModel(spec, None, spp=64, max_depth=depth - 1, channels=("G",), seed=3)
     bulb_m = m.render(0.0, 0.0, 0.0, 1.0)[..., 0]
@@ -200,17 +201,17 @@ def test_mitsuba_renders_through_the_distortion():
     moved = np.hypot(*(centroid(_bulb_image(pin)) - centroid(bulb_a)))
     print(f"\nbulb centroid Mitsuba {centroid(bulb_m).round(3)}, analytic "
           f"{centroid(bulb_a).round(3)} px (moved {moved:.2f} px by the distortion)")
-    assert np.hypot(*(centroid(bulb_m) - centroid(bulb_a))) < 0.1 < moved / 5
+    assert np.hypot(*(centroid(bulb_m) - centroid(bulb_a))) < 0.1 and moved > 0.5
     args = (1e-5, 0.01, 0.5, 1.0)
-    m = MitsubaModel(spec, None, spp=256, max_depth=depth, channels=("G",), seed=4)
+    m = MitsubaModel(spec, None, spp=1024, max_depth=depth, channels=("G",), seed=4)
     img, err = (a[..., 0] for a in m.render_with_error(*args, batches=8))
     ref = SingleScattering(spec, None, channels=("G",), supersample=8).render(*args)[..., 0]
-    glow = _glow_mask(spec, ref, 3 * 6.0)
+    glow = _glow_mask(spec, ref, 3 * 10.0)
     rel = img[glow].sum() / ref[glow].sum() - 1
     rel_err = math.sqrt(np.sum(err[glow] ** 2)) / ref[glow].sum()
     print(f"glow ({glow.sum()} px): Mitsuba / analytic - 1 = {100 * rel:+.2f} % "
           f"+- {100 * rel_err:.2f} % (MC)")
-    assert rel_err < 0.01 and abs(rel) < 0.03
+    assert rel_err < 0.01 and abs(rel) < 3 * rel_err + 0.005
 
 
 # -------------------------------------------------------------- a fit that needs it
