@@ -84,9 +84,11 @@ LIGHT_SCHEMA = {
 
 _sat = {"type": "number", "exclusiveMinimum": 0}
 # an image entry's decoding (docs/spec.md: "Non-linear input", "Measured response", "Binning")
-_response = {"oneOf": [{"enum": ["linear", "srgb"]},
-                       {"type": "object", "additionalProperties": False, "required": ["curve"],
-                        "properties": {"curve": {"type": "string", "minLength": 1}}}]}
+# (if/then/else, not oneOf: a mistyped key in the mapping is then named, with the closest one)
+_response = {"if": {"type": "object"},
+             "then": {"additionalProperties": False, "required": ["curve"],
+                      "properties": {"curve": {"type": "string", "minLength": 1}}},
+             "else": {"enum": ["linear", "srgb"]}}
 _binning = {"type": "integer", "minimum": 1}
 
 IMAGE_SCHEMA = {
