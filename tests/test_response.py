@@ -142,3 +142,26 @@ def test_a_capture_through_a_curve_fits_like_the_linear_one(tmp_path):
     cur = fit_at_truth(specs["curve"], truth, K_FLOAT * r)["G"]
     assert np.all(np.abs(cur["est"] - lin["est"]) < 0.1 * lin["sd"]), (cur["map"], lin["map"])
     assert np.all(np.abs((cur["est"] - cur["ref"]) / cur["sd"]) < 3), (cur["map"], truth)
+
+
+def test_the_spec_names_the_curve_file_relative_to_itself(tmp_path):
+    """The spec's `response: {curve: FILE}` (docs/spec.md): the path relative to the spec's
+    folder; a mistyped key named with the closest one; a missing file named by its field."""
+    from fitmedia.errors import SpecError
+    from fitmedia.spec import load_spec
+
+    tifffile.imwrite(tmp_path / "a.tiff", np.full((H, W, 3), 90, np.uint8), photometric="rgb")
+    (tmp_path / "c.csv").write_text("0,0,0\n")
+
+    def spec(response):
+        d = dict(geometry_dict(width=W, height=H),
+                 images=[{"path": "a.tiff", "exposure_s": 1.0, "response": response}])
+        (tmp_path / "s.yaml").write_text(yaml.safe_dump(d))
+        return load_spec(tmp_path / "s.yaml")
+    entry = spec({"curve": "c.csv"}).images[0]
+    assert entry.response == "curve" and entry.response_curve == tmp_path / "c.csv"
+    with pytest.raises(SpecError, match=r"images\[0\].response: unknown field 'curv' \(did you "
+                                        "mean 'curve'"):
+        spec({"curv": "c.csv"})
+    with pytest.raises(SpecError, match=r"images\[0\].response.curve: file not found"):
+        spec({"curve": "nope.csv"})
