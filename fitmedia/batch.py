@@ -24,10 +24,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .errors import InputError
+from .inference.result import read_result
 from .util import check_output_dir, write_json
 
 if TYPE_CHECKING:  # pragma: no cover  (imported in the functions: `fitmedia --help` stays fast)
-    from .inference.fit import FitOptions
+    from .inference.result import FitOptions, FitResult
     from .validate import Score, ValidationResult
 
 #: Geometry used by :func:`validate` when none is given (full size, 200 x 150 pixels).
@@ -191,7 +192,7 @@ def _run_round(task: RoundTask) -> dict:
     t0 = time.perf_counter()
     try:
         truth = _read_json(out / "capture" / "truth.json")
-        fitted = _read_json(out / "fit" / "results.json")
+        fitted = read_result(out / "fit" / "results.json")
         if fitted and truth and truth.get("seed") == task.seed \
                 and truth.get("medium") == task.medium \
                 and not _identity_differs(fitted, out / "capture" / "capture.yaml", task.options):
@@ -203,21 +204,21 @@ def _run_round(task: RoundTask) -> dict:
                                 name=task.medium)
     except InputError as exc:
         return {**record, "status": "failed", "error": str(exc)}
-    results = _read_json(out / "fit" / "results.json") or {}
+    results = read_result(out / "fit" / "results.json")
     record.update(status="done", wall_time_s=time.perf_counter() - t0,
                   scores=[asdict(s) for s in scores], trust=_trust_summary(results),
-                  run_identity=results.get("run_identity"))
+                  run_identity=results.run_identity if results else None)
     write_json(out / "round.json", record)
     return record
 
 
-def _identity_differs(results: dict, spec: str | Path, options: FitOptions) -> list[str]:
+def _identity_differs(results: FitResult, spec: str | Path, options: FitOptions) -> list[str]:
     """What differs between the run identity in an earlier fit's ``results`` and a fit of
     ``spec`` with ``options`` now (:mod:`fitmedia.inference.identity`); empty: the same."""
     from .inference.identity import identity_differences
     from .pipeline import capture_identity
 
-    return identity_differences(results.get("run_identity"), capture_identity(spec, options))
+    return identity_differences(results.run_identity, capture_identity(spec, options))
 
 
 def _finished_round(task: RoundTask) -> dict | None:
@@ -296,6 +297,7 @@ def ml_range_for_optical_depth(spec, medium_name: str, optical_depth: tuple[floa
     return lo, hi
 
 
+# long: the numpy-style docstring of its 11 parameters is 45 lines; the body is 27
 def validate(media: list[str], rounds: int, out_dir: str | Path, *,
              ml: list[float] | None = None, geometry: str | Path | None = None, seed: int = 0,
              scheduler: str | None = None, n_workers: int = 2,
@@ -340,7 +342,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     -------
     ValidationResult
     """
-    from .inference.fit import FitOptions
+    from .inference.result import FitOptions
     from .spec import load_spec
     from .validate import Score, write_coverage
 
@@ -352,14 +354,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     if geometry is None and not geo.is_file():
         raise InputError(f"--spec: not given, and the default {geo} is not there")
     geo_spec = load_spec(geo, require_images=False)  # bad geometry fails here, before any round
-    ranges = {n: ML_RANGE for n in names}
-    if optical_depth is not None:
-        if ml is not None:
-            raise InputError("--optical-depth: not with --ml (it chooses the ml)")
-        lo, hi = (float(t) for t in optical_depth)
-        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
-            raise InputError(f"--optical-depth: got {lo:g} {hi:g}: expected 0 < LO < HI")
-        ranges = {n: ml_range_for_optical_depth(geo_spec, n, (lo, hi), tank_ml) for n in names}
+    ranges = _ml_ranges(geo_spec, names, ml, optical_depth, tank_ml)
     sha = hashlib.sha256(geo.read_bytes()).hexdigest()
     tasks, records = [], {}
     for i in range(rounds):
@@ -380,6 +375,19 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     return write_coverage(out, ordered, scores)
 
 
+def _ml_ranges(geo_spec, names: list[str], ml, optical_depth, tank_ml: float) -> dict:
+    """Per medium, the range its rounds' ml are drawn from: ``ML_RANGE``, or the ml that put
+    the G channel's optical depth at the ends of ``optical_depth``."""
+    if optical_depth is None:
+        return {n: ML_RANGE for n in names}
+    if ml is not None:
+        raise InputError("--optical-depth: not with --ml (it chooses the ml)")
+    lo, hi = (float(t) for t in optical_depth)
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+        raise InputError(f"--optical-depth: got {lo:g} {hi:g}: expected 0 < LO < HI")
+    return {n: ml_range_for_optical_depth(geo_spec, n, (lo, hi), tank_ml) for n in names}
+
+
 # ---------------------------------------------------------------------------------------------
 # many captures
 
@@ -393,23 +401,22 @@ class FitTask:
     report: bool
 
 
-def _summary_record(task: FitTask, results: dict, status: str) -> dict:
-    p = results.get("parameters", {})
-    key = "median" if "median" in p.get("kappa_s", {}).get(results["channels"][0], {}) else "map"
-    est = {q: {ch: {"value": p[q][ch][key], "std": p[q][ch].get("std")}
-               for ch in results["channels"]} for q in ("kappa_a", "kappa_s", "g") if q in p}
+def _summary_record(task: FitTask, result: FitResult, status: str) -> dict:
+    """fit-many's record of one fitted capture (summary.json)."""
+    key, p = result.statistic, result.parameters
+    est = {q: {ch: {"value": result.value(q, ch, key), "std": p[q][ch].get("std")}
+               for ch in result.channels} for q in ("kappa_a", "kappa_s", "g") if q in p}
     return {"spec": task.spec, "name": task.name, "out": task.out, "status": status,
             "statistic": key, "units": "1/mm (kappa), undiluted", "estimates": est,
-            "converged": results.get("diagnostics", {}).get("converged"),
-            "trust": _trust_summary(results), "wall_time_s": results.get("wall_time_s"),
-            "run_identity": results.get("run_identity")}
+            "converged": result.converged, "trust": _trust_summary(result),
+            "wall_time_s": result.wall_time_s, "run_identity": result.run_identity}
 
 
-def _trust_summary(results: dict | None) -> dict | None:
-    """The misfit guard's verdict of a fit's results.json (``ok``, ``reasons``, ``notes``);
-    None for a results.json without one."""
-    t = (results or {}).get("trust")
-    return {k: t.get(k) for k in ("ok", "reasons", "notes")} if isinstance(t, dict) else None
+def _trust_summary(result: FitResult | None) -> dict | None:
+    """The misfit guard's verdict of a fit (``ok``, ``reasons``, ``notes``); None for a
+    results.json without one."""
+    t = result.trust if result is not None else None
+    return {k: t.get(k) for k in ("ok", "reasons", "notes")} if t else None
 
 
 def _run_fit(task: FitTask) -> dict:
@@ -454,7 +461,7 @@ def fit_many(specs: list[str | Path], out_dir: str | Path, *, scheduler: str | N
     """
     if not specs:
         raise InputError("SPEC: no capture spec given")
-    from .inference.fit import FitOptions
+    from .inference.result import FitOptions
 
     options = options or FitOptions()
     _check_runner(scheduler, n_workers)
@@ -467,8 +474,8 @@ def fit_many(specs: list[str | Path], out_dir: str | Path, *, scheduler: str | N
     for i, (s, stem) in enumerate(zip(specs, stems)):
         name = stem if unique else f"{i:04d}_{stem}"
         task = FitTask(str(Path(s).resolve()), name, str(out / name), inner, report)
-        prior = _read_json(out / name / "results.json")
-        if prior is not None and prior.get("parameters") and prior.get("channels"):
+        prior = read_result(out / name / "results.json")
+        if prior is not None:
             diff = _identity_differs(prior, task.spec, inner)
             if diff:
                 raise InputError(f"--out: {task.out} holds a fit of another run (what differs: "

@@ -10,12 +10,12 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from .errors import InputError
+from .inference.result import FitOptions  # stdlib only: no numpy for --help
 
-if TYPE_CHECKING:  # pragma: no cover
-    from .inference.fit import FitOptions
+#: the defaults of every fit option the CLI offers: FitOptions' own
+DEFAULTS = FitOptions()
 
 
 def _positive_int(text: str) -> int:
@@ -171,8 +171,9 @@ def _add_runner_args(p) -> None:
                         "process")
     p.add_argument("--workers", type=_positive_int, default=2,
                    help="worker processes of the local cluster (default 2)")
-    p.add_argument("--max-steps", type=_positive_int, default=20000)
-    p.add_argument("--n-tau", type=_finite, default=50.0, help="chain length in autocorr. times")
+    p.add_argument("--max-steps", type=_positive_int, default=DEFAULTS.max_steps)
+    p.add_argument("--n-tau", type=_finite, default=DEFAULTS.n_tau,
+                   help="chain length in autocorr. times")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -290,6 +291,7 @@ def cmd_export(a) -> int:
     return 0
 
 
+# long: one add_argument per option of the subcommands synth, fit, report, demo, doctor, slab
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="fitmedia", description=__doc__.splitlines()[0])
     p.add_argument("-v", "--verbose", action="store_true", help="log progress details")
@@ -319,20 +321,20 @@ def build_parser() -> argparse.ArgumentParser:
     f = sub.add_parser("fit", help="fit a capture and write results.json and report.html")
     f.add_argument("spec")
     f.add_argument("--out", type=_out_dir, required=True)
-    f.add_argument("--model", choices=["single", "full", "auto"], default="single",
+    f.add_argument("--model", choices=["single", "full", "auto"], default=DEFAULTS.model,
                    help="single: analytic single scattering; full: plus the multiple-scattering "
                         "term, refreshed around the MAP; auto: full when the term's share of the "
                         "glow at the single-scattering MAP is above 2 %%")
-    f.add_argument("--seed", type=_seed, default=0)
+    f.add_argument("--seed", type=_seed, default=DEFAULTS.seed)
     f.add_argument("--no-mcmc", action="store_true", help="MAP only, no posterior sampling")
     f.add_argument("--no-report", action="store_true")
     f.add_argument("--robust", action="store_true", help="Student-t likelihood (outliers)")
     f.add_argument("--background", action="store_true",
                    help="fit an additive background offset per channel (normal prior)")
-    f.add_argument("--n-tau", type=_positive_finite, default=50.0,
+    f.add_argument("--n-tau", type=_positive_finite, default=DEFAULTS.n_tau,
                    help="chain length in autocorr. times")
-    f.add_argument("--max-steps", type=_positive_int, default=20000)
-    f.add_argument("--workers", type=_positive_int, default=None)
+    f.add_argument("--max-steps", type=_positive_int, default=DEFAULTS.max_steps)
+    f.add_argument("--workers", type=_positive_int, default=DEFAULTS.workers)
     f.add_argument("--resume", action="store_true", help="continue from the chains in --out")
     f.add_argument("--quiet", action="store_true", help="no progress bars")
     f.set_defaults(func=cmd_fit)

@@ -21,24 +21,30 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections.abc import Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 from xml.sax.saxutils import quoteattr
 
 from .errors import InputError
 from .spec import CHANNELS
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .inference.result import FitResult
 from .util import atomic_write_text
 
 MM_PER_M = 1000.0
 FILES = ("medium_mitsuba.json", "medium_mitsuba.xml", "medium_pbrt.txt")
 
 
-def medium_values(results: dict, *, scale_to_m: bool = False) -> dict:
-    """The renderer values of a results.json dict.
+def medium_values(results: Mapping, *, scale_to_m: bool = False) -> dict:
+    """The renderer values of a fit (a :class:`~fitmedia.inference.result.FitResult` or its
+    results.json dict).
 
     Parameters
     ----------
-    results : dict
-        A results.json (``parameters.{kappa_t,albedo,g}.{R,G,B}`` with ``median`` or ``map``;
+    results : FitResult or dict
+        A fit (``parameters.{kappa_t,albedo,g}.{R,G,B}`` with ``median`` or ``map``;
         ``units.kappa`` of ``1/mm``).
     scale_to_m : bool
         Coefficients in 1/m instead of 1/mm.
@@ -50,7 +56,7 @@ def medium_values(results: dict, *, scale_to_m: bool = False) -> dict:
         coefficients in ``unit``), ``g_mean``, ``statistic`` (``"median"`` or ``"map"``),
         ``unit`` (``"1/mm"`` or ``"1/m"``), ``name``.
     """
-    if not isinstance(results, dict) or not isinstance(results.get("parameters"), dict):
+    if not isinstance(results, Mapping) or not isinstance(results.get("parameters"), dict):
         raise InputError("results.json: parameters: missing; expected the output of fitmedia fit")
     unit = (results.get("units") or {}).get("kappa", "1/mm")
     if unit != "1/mm":
@@ -141,13 +147,14 @@ def pbrt_block(v: dict) -> str:
             f"    \"float g\" {_num(v['g_mean'])}\n")
 
 
-def export_medium(results: dict, out_dir: str | Path, *, scale_to_m: bool = False) -> list[Path]:
+def export_medium(results: Mapping, out_dir: str | Path, *, scale_to_m: bool = False
+                  ) -> list[Path]:
     """Write the fitted medium of ``results`` for Mitsuba 3 and pbrt-v4 into ``out_dir``.
 
     Parameters
     ----------
-    results : dict
-        A results.json dict (undiluted liquid, 1/mm).
+    results : FitResult or dict
+        A fit or its results.json dict (undiluted liquid, 1/mm).
     out_dir : str or Path
         Receives ``medium_mitsuba.json`` (``{"medium": <mi.load_dict input>, ...}`` with the
         units, the statistic and the per-channel g beside it), ``medium_mitsuba.xml`` (a
@@ -174,16 +181,9 @@ def export_medium(results: dict, out_dir: str | Path, *, scale_to_m: bool = Fals
     return paths
 
 
-def read_results(directory: str | Path) -> dict:
-    """``directory/results.json`` as a dict; a missing or broken file is an InputError."""
-    path = Path(directory) / "results.json"
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found; run fitmedia fit first") from None
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable JSON file ({type(exc).__name__})") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a JSON object")
-    return data
+def read_results(directory: str | Path) -> FitResult:
+    """The fit in ``directory/results.json`` (:meth:`FitResult.from_json`); a missing or
+    broken file is an InputError naming it."""
+    from .inference.result import FitResult
 
+    return FitResult.from_json(Path(directory) / "results.json")

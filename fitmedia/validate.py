@@ -105,12 +105,11 @@ def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str,
               spec: Spec | str | Path | None = None) -> list[Score]:
     """Score a finished fit (``fit_dir`` with results.json and samples.npz) against ``truth``;
     with the capture's ``spec`` (or its path) each score also carries the optical depths."""
-    import json
-
+    from .inference.result import FitResult
     from .spec import load_spec
 
     fit_dir = Path(fit_dir)
-    channels = json.loads((fit_dir / "results.json").read_text())["channels"]
+    channels = FitResult.from_json(fit_dir).channels
     if spec is not None and not isinstance(spec, Spec):
         spec = load_spec(spec)
     values = truth.as_dict()

@@ -21,8 +21,9 @@ from ..images import LoadedImage, checks, load_entry
 from ..images.noise import entry_noise, noise_summary
 from ..spec import CHANNELS, Spec
 from .likelihood import ChannelProblem, Observation
-from .optimize import find_map
+from .optimize import MapResult, find_map
 from .params import G_MAX, G_MIN, ChannelParams, ParameterSpace
+from .result import FitOptions
 from .sample import Redraw, half_space, mix_modes, mode_log_mass, mode_weights, run_chain
 
 
@@ -38,22 +39,6 @@ OTHER_MODE_DELTA = 8.0
 MODE_WEIGHT_SE = 0.01
 #: |g| below which the polished other-sign optimum counts as the MAP's own region (g = 0)
 SAME_MODE_G = 1e-3
-
-
-@dataclass
-class FitOptions:
-    model: str = "single"
-    seed: int = 0
-    mcmc: bool = True
-    robust: bool = False
-    n_tau: float = 50.0
-    max_steps: int = 20000
-    n_walkers: int | None = None
-    global_evals: int = 400
-    background: bool = False  # fit an additive background offset per channel (nuisance)
-    workers: int | None = None
-    resume: bool = False
-    progress: bool = True
 
 
 @dataclass
@@ -80,11 +65,16 @@ class Prepared:
 MODELS = ("single", "full", "auto")
 
 
-def _model(spec: Spec, image_index: int | None, channel: str, options: FitOptions):
-    """The analytic model of one image and channel: every fit starts with it; ``full`` and
-    ``auto`` wrap it in the full-transport model after the single-scattering MAP."""
+def _model(spec: Spec, image_index: int | None, channel: str, options: FitOptions,
+           forward=None):
+    """The model of one image and channel: ``forward(spec, image_index, channels=(channel,))``
+    when a forward-model factory is given (``fitmedia.fit(..., model=...)``), else the analytic
+    single scattering: every fit starts with it; ``full`` and ``auto`` wrap it in the
+    full-transport model after the single-scattering MAP."""
     if options.model not in MODELS:
         raise InputError(f"--model: {options.model!r} is not one of {', '.join(MODELS)}")
+    if forward is not None:
+        return forward(spec, image_index, channels=(channel,))
     if options.model != "single" and spec.light.type != "bulb":
         raise InputError(f"--model {options.model}: the multiple-scattering term is implemented "
                          "for light.type bulb only; use --model single for a spot")
@@ -157,23 +147,9 @@ def prepare(spec: Spec) -> Prepared:
     from ..memory import check_memory
 
     check_memory(spec, "fit")  # before any image is read: a huge camera.size is refused here
-    shape = (spec.camera.height, spec.camera.width)
     ch_idx = tuple(CHANNELS.index(c) for c in spec.channels)
+    images, clear, named = _load_images(spec, ch_idx)
     notes: list[str] = []
-    images = []
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # checked just below
-        for i, entry in enumerate(spec.images):
-            cam = spec.camera_for(i)
-            images.append(load_entry(entry, expected_shape=(cam.height, cam.width),
-                                     channels=ch_idx))
-        clear = None
-        if spec.clear_water is not None:
-            clear = load_entry(spec.clear_water, expected_shape=shape, channels=ch_idx)
-    named = [(f"images[{i}]", e.paths, im) for i, (e, im) in enumerate(zip(spec.images, images))]
-    named += [("calibration.clear_water", spec.clear_water.paths, clear)] if clear else []
-    for _, _, im in named:
-        checks.check_values(im, ch_idx, spec.channels)
-    checks.check_distinct(named)
     entries = list(spec.images) + ([spec.clear_water] if clear else [])
     sensor, maps, per_image = {}, {}, {}
     for (where, _, im), entry in zip(named, entries):
@@ -197,7 +173,35 @@ def prepare(spec: Spec) -> Prepared:
                               float(spec.priors.get("background_sd", 0.0)))
         if where != "calibration.clear_water":  # the bulb on black: calibrate() judges it
             checks.check_lit(im, ch_idx, spec.channels, maps[where][1])
-    brightness: dict[str, float | None]
+    brightness, source, rel_sd = _brightness(spec, clear, maps, notes)
+    return Prepared(spec, images, clear, noise, noise_source, brightness, source, rel_sd, notes,
+                    sensor, maps, per_image)
+
+
+def _load_images(spec: Spec, ch_idx: tuple[int, ...]) -> tuple[list, LoadedImage | None, list]:
+    """The capture's images and clear-water photo, loaded and checked (values, distinct
+    files); and ``(where, paths, image)`` of each for the messages."""
+    shape = (spec.camera.height, spec.camera.width)
+    images = []
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # checked just below
+        for i, entry in enumerate(spec.images):
+            cam = spec.camera_for(i)
+            images.append(load_entry(entry, expected_shape=(cam.height, cam.width),
+                                     channels=ch_idx))
+        clear = None
+        if spec.clear_water is not None:
+            clear = load_entry(spec.clear_water, expected_shape=shape, channels=ch_idx)
+    named = [(f"images[{i}]", e.paths, im) for i, (e, im) in enumerate(zip(spec.images, images))]
+    named += [("calibration.clear_water", spec.clear_water.paths, clear)] if clear else []
+    for _, _, im in named:
+        checks.check_values(im, ch_idx, spec.channels)
+    checks.check_distinct(named)
+    return images, clear, named
+
+
+def _brightness(spec: Spec, clear: LoadedImage | None, maps: dict, notes: list[str]) -> tuple:
+    """The light's brightness per channel (None: a free parameter), where it comes from, and
+    its relative standard error per channel (clear-water calibration only); adds notes."""
     light = spec.light
     rel_sd: dict[str, float | None] = {c: None for c in spec.channels}
     if light.type == "bulb" and clear is not None:
@@ -205,21 +209,18 @@ def prepare(spec: Spec) -> Prepared:
         brightness, rel_sd = calibrate(spec, clear, {c: (g_c[..., CHANNELS.index(c)],
                                                          r_c[..., CHANNELS.index(c)])
                                                      for c in spec.channels})
-        source = "clear-water photo (prior: normal in log brightness, calibration's error)"
-    elif light.brightness is not None:
-        brightness = {c: light.brightness[CHANNELS.index(c)] for c in spec.channels}
-        source = "spec (light.radiance / light.intensity)"
+        return brightness, ("clear-water photo (prior: normal in log brightness, calibration's "
+                            "error)"), rel_sd
+    if light.brightness is not None:
         if light.type == "spot" and clear is not None:
             notes.append("clear-water photo not used: a spot (point source) is not visible in it")
-    else:
-        brightness = {c: None for c in spec.channels}
-        source = "free parameter"
-        why = "a spot is not visible in a clear-water photo" if light.type == "spot" else \
-            "no calibration.clear_water"
-        notes.append(f"light brightness fitted as a free parameter ({why}): kappa_s is then only "
-                     "constrained through its product with the brightness and the glow's shape")
-    return Prepared(spec, images, clear, noise, noise_source, brightness, source, rel_sd, notes,
-                    sensor, maps, per_image)
+        return ({c: light.brightness[CHANNELS.index(c)] for c in spec.channels},
+                "spec (light.radiance / light.intensity)", rel_sd)
+    why = "a spot is not visible in a clear-water photo" if light.type == "spot" else \
+        "no calibration.clear_water"
+    notes.append(f"light brightness fitted as a free parameter ({why}): kappa_s is then only "
+                 "constrained through its product with the brightness and the glow's shape")
+    return {c: None for c in spec.channels}, "free parameter", rel_sd
 
 
 def _kt_guess(spec: Spec, obs: list[Observation], brightness: float | None) -> float:
@@ -240,16 +241,63 @@ def _kt_guess(spec: Spec, obs: list[Observation], brightness: float | None) -> f
     return float(np.exp(np.mean(np.log(best)))) if best else 1e-3 / min(o.concentration for o in obs)
 
 
+@dataclass
+class ChannelSetup:
+    """One channel's posterior and where its MAP search starts (:func:`channel_problem`)."""
+
+    problem: ChannelProblem
+    space: ParameterSpace
+    free: bool  # the brightness is a parameter
+    guess_b: float  # the brightness's starting value
+    kt0: float  # kappa_t from the bulb's attenuation (undiluted, 1/mm)
+    x0: np.ndarray  # the search's start in the sampler's coordinates
+
+
 def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np.ndarray],
                 brightness: float | None, brightness_rel_sd: float | None,
                 noise: tuple[float, float], options: FitOptions,
                 checkpoint: Path | None = None, seed: int = 0, identity: dict | None = None,
-                noise_maps: list[tuple[np.ndarray, np.ndarray]] | None = None) -> dict:
+                noise_maps: list[tuple[np.ndarray, np.ndarray]] | None = None,
+                forward=None) -> dict:
     """MAP and (optionally) posterior samples of one channel; returns plain arrays/dicts.
-    ``identity`` (:mod:`fitmedia.inference.identity`) goes into the chains' checkpoints."""
+    ``identity`` (:mod:`fitmedia.inference.identity`) goes into the chains' checkpoints;
+    ``forward``: a forward-model factory (:func:`_model`), else single scattering."""
+    setup = channel_problem(spec, channel, data, valid, brightness, brightness_rel_sd, noise,
+                            options, noise_maps, forward)
+    problem, space = setup.problem, setup.space
+    rng = np.random.default_rng([seed, CHANNELS.index(channel)])
+    res, alt = search_map(setup, options, rng)
+    transport: dict = {}  # --model full / auto: what was used (_full_transport)
+    if options.model != "single" and forward is None:
+        res, transport = _full_transport(problem, space, res, spec, channel, options, seed)
+        if transport["model_used"] == "full":
+            alt = None  # the other g mode was judged with single scattering only
+    other_mode = None if alt is None else {
+        "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
+        "delta_log_posterior": float(alt.log_posterior - res.log_posterior)}
+    out = {"channel": channel, "names": space.names, "x_map": res.x, "map_logp": res.log_posterior,
+           "n_evals": res.n_evals, "laplace_cov": res.cov,
+           "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
+           "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
+           "chi2_images": problem.chi2_images(res.x),
+           "valid_images": [o.valid for o in problem.obs],
+           "free_brightness": setup.free, "space": space, "other_g_mode": other_mode, **transport}
+    if options.mcmc:
+        out.update(_sample_channel(problem, space, res, alt, other_mode, options, rng,
+                                   checkpoint, [seed, CHANNELS.index(channel)], channel, identity))
+    return out
+
+
+def channel_problem(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np.ndarray],
+                    brightness: float | None, brightness_rel_sd: float | None,
+                    noise: tuple[float, float], options: FitOptions,
+                    noise_maps: list[tuple[np.ndarray, np.ndarray]] | None = None,
+                    forward=None) -> ChannelSetup:
+    """One channel's observations (a forward model per image), parameter space and priors,
+    posterior, and the MAP search's starting point (kappa_t from the bulb's attenuation)."""
     obs = []
     for i, (d, v) in enumerate(zip(data, valid)):
-        model = _model(spec, i, channel, options)
+        model = _model(spec, i, channel, options, forward)
         g, r = noise_maps[i] if noise_maps else (None, None)  # per-pixel noise, when known
         obs.append(Observation(model, d, v & model.support, spec.images[i].concentration, g, r))
     free = brightness is None or brightness_rel_sd is not None
@@ -269,9 +317,17 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     x0 = space.to_vector(ChannelParams(kt0, 0.5, 0.5, guess_b if free else None))
     if not space.lower[0] <= np.log(kt0) <= space.upper[0]:
         x0[0] = 0.5 * (space.lower[0] + space.upper[0])
+    return ChannelSetup(problem, space, free, guess_b, kt0, x0)
+
+
+def search_map(setup: ChannelSetup, options: FitOptions, rng: np.random.Generator
+               ) -> tuple[MapResult, MapResult | None]:
+    """The MAP (polished, with its Laplace covariance) and the best optimum scattering the
+    other way (forward vs backward g), or None: a global search near the start, local
+    searches from several starts, each candidate judged with quadrature nodes of its own."""
+    problem, space, x0 = setup.problem, setup.space, setup.x0
     lo, hi = space.lower.copy(), space.upper.copy()
     lo[0], hi[0] = max(lo[0], x0[0] - 3), min(hi[0], x0[0] + 3)  # global search near the guess
-    rng = np.random.default_rng([seed, CHANNELS.index(channel)])
     # 1. global search, quadrature nodes adapted at every call (nodes frozen for a broad phase
     #    function misjudge a forward-peaked one and create false modes)
     res = find_map(problem.log_posterior, x0, lo, hi, global_evals=options.global_evals,
@@ -280,8 +336,9 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     #    strong attenuation (accurate to < 1e-3 for every g >= 0 and kappa_t up to 3x):
     #    the albedo direction has a plateau when kappa_a << kappa_s, and g has a second,
     #    backward-scattering mode
-    kt_hi = 3.0 * kt0  # from the bulb's attenuation, not from a possibly false global mode
-    problem.adapt(space.to_vector(ChannelParams(kt_hi, 0.5, 0.97, guess_b if free else None)))
+    kt_hi = 3.0 * setup.kt0  # from the bulb's attenuation, not from a possibly false global mode
+    problem.adapt(space.to_vector(ChannelParams(kt_hi, 0.5, 0.97,
+                                                setup.guess_b if setup.free else None)))
     starts = [res.x]
     for g0 in (0.6, 0.9, -0.5):  # -0.5: the backward mode, so that it is always looked at
         for la in (0.0, 6.0):
@@ -295,6 +352,19 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
                         local_evals=500, laplace=False, step=0.3, tol=1e-5)
         n_evals += cand.n_evals
         cands.append(cand)
+    best, alt, n_other = _best_and_other(problem, space, cands)
+    # 3. nodes tuned at the optimum; polish; Laplace covariance
+    problem.adapt(best.x)
+    res = find_map(problem.log_posterior, best.x, space.lower, space.upper, global_evals=0)
+    res.n_evals += n_evals + n_other
+    return res, alt
+
+
+def _best_and_other(problem: ChannelProblem, space: ParameterSpace, cands: list[MapResult]
+                    ) -> tuple[MapResult, MapResult | None, int]:
+    """The best candidate, the best one scattering the other way (polished with its own nodes;
+    None when there is none or it slides into the best one's region), and the evaluations
+    the polish took."""
     # judge the candidates fairly: each with quadrature nodes adapted to its own parameters
     # (the shared nodes above are tuned for forward peaks and misjudge a backward-g mode)
     for cand in cands:
@@ -304,56 +374,43 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     # the best candidate scattering the other way (forward vs backward g), polished with its own
     # nodes: the sampler explores the best mode only, so a close second mode is reported
     other = [c for c in cands if _opposite_g(c.x, best.x)]
-    alt = None
-    if other:
-        alt = max(other, key=lambda c: c.log_posterior)
-        problem.adapt(alt.x)
-        alt = find_map(problem.log_posterior, alt.x, space.lower, space.upper, global_evals=0,
-                       laplace=False)
-        n_evals += alt.n_evals
-        # the polish runs over the whole range of g: on a posterior that hardly depends on g
-        # (dense captures) it slides to g = 0 or across it, into the MAP's own region; that
-        # is not a second mode (docs/inference.md)
-        if not _opposite_g(alt.x, best.x) or abs(np.tanh(alt.x[2])) < SAME_MODE_G:
-            alt = None
-    # 3. nodes tuned at the optimum; polish; Laplace covariance
-    problem.adapt(best.x)
-    res = find_map(problem.log_posterior, best.x, space.lower, space.upper, global_evals=0)
-    res.n_evals += n_evals
-    transport: dict = {}  # --model full / auto: what was used (_full_transport)
-    if options.model != "single":
-        res, transport = _full_transport(problem, space, res, spec, channel, options, seed)
-        if transport["model_used"] == "full":
-            alt = None  # the other g mode was judged with single scattering only
-    other_mode = None if alt is None else {
-        "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
-        "delta_log_posterior": float(alt.log_posterior - res.log_posterior)}
-    out = {"channel": channel, "names": space.names, "x_map": res.x, "map_logp": res.log_posterior,
-           "n_evals": res.n_evals, "laplace_cov": res.cov,
-           "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
-           "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
-           "chi2_images": problem.chi2_images(res.x),
-           "valid_images": [o.valid for o in problem.obs],
-           "free_brightness": free, "space": space, "other_g_mode": other_mode, **transport}
-    if options.mcmc:
-        two = other_mode is not None and other_mode["delta_log_posterior"] > -OTHER_MODE_DELTA
-        # with two modes each chain keeps to its own sign of g, so that the modes' masses can
-        # be measured separately and the chains mixed by them
-        log_post = half_space(problem.log_posterior, 2, res.x[2]) if two \
-            else problem.log_posterior
-        chain = run_chain(log_post, res.x, res.cov, space.lower, space.upper, rng=rng,
-                          checkpoint=checkpoint, resume=options.resume,
-                          n_walkers=options.n_walkers, n_tau=options.n_tau,
-                          max_steps=options.max_steps, progress=options.progress, label=channel,
-                          redraw=albedo_redraw(space, res.x, res.cov), identity=identity)
-        out.update(samples=chain.samples, log_prob=chain.log_prob_samples, n_steps=chain.n_steps,
-                   tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
-                   reason=chain.reason, burn=chain.burn, thin=chain.thin, chain=chain.chain,
-                   ess=chain.ess, rhat=chain.rhat)
-        if two:
-            out.update(_sample_other_mode(problem, space, res, alt, chain, log_post, options,
-                                          checkpoint, [seed, CHANNELS.index(channel)], channel,
-                                          other_mode, identity))
+    if not other:
+        return best, None, 0
+    alt = max(other, key=lambda c: c.log_posterior)
+    problem.adapt(alt.x)
+    alt = find_map(problem.log_posterior, alt.x, space.lower, space.upper, global_evals=0,
+                   laplace=False)
+    # the polish runs over the whole range of g: on a posterior that hardly depends on g
+    # (dense captures) it slides to g = 0 or across it, into the MAP's own region; that
+    # is not a second mode (docs/inference.md)
+    if not _opposite_g(alt.x, best.x) or abs(np.tanh(alt.x[2])) < SAME_MODE_G:
+        return best, None, alt.n_evals
+    return best, alt, alt.n_evals
+
+
+def _sample_channel(problem: ChannelProblem, space: ParameterSpace, res: MapResult, alt,
+                    other_mode: dict | None, options: FitOptions, rng: np.random.Generator,
+                    checkpoint: Path | None, seed: list[int], channel: str,
+                    identity: dict | None) -> dict:
+    """The posterior's chain from the MAP ``res`` (and a second one for the other mode of g,
+    :func:`_sample_other_mode`, when its log posterior is within ``OTHER_MODE_DELTA``);
+    returns the fields of ``fit_channel``'s result that sampling adds."""
+    two = other_mode is not None and other_mode["delta_log_posterior"] > -OTHER_MODE_DELTA
+    # with two modes each chain keeps to its own sign of g, so that the modes' masses can
+    # be measured separately and the chains mixed by them
+    log_post = half_space(problem.log_posterior, 2, res.x[2]) if two else problem.log_posterior
+    chain = run_chain(log_post, res.x, res.cov, space.lower, space.upper, rng=rng,
+                      checkpoint=checkpoint, resume=options.resume,
+                      n_walkers=options.n_walkers, n_tau=options.n_tau,
+                      max_steps=options.max_steps, progress=options.progress, label=channel,
+                      redraw=albedo_redraw(space, res.x, res.cov), identity=identity)
+    out = dict(samples=chain.samples, log_prob=chain.log_prob_samples, n_steps=chain.n_steps,
+               tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
+               reason=chain.reason, burn=chain.burn, thin=chain.thin, chain=chain.chain,
+               ess=chain.ess, rhat=chain.rhat)
+    if two:
+        out.update(_sample_other_mode(problem, space, res, alt, chain, log_post, options,
+                                      checkpoint, seed, channel, other_mode, identity))
     return out
 
 
@@ -485,7 +542,7 @@ def _job(args):
 
 
 def channel_args(prep: Prepared, ch: str, options: FitOptions, checkpoint_dir: Path | None,
-                 identity: dict | None = None) -> tuple:
+                 identity: dict | None = None, forward=None) -> tuple:
     """``fit_channel``'s arguments for channel ``ch`` of a prepared capture."""
     ci = CHANNELS.index(ch)
     ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"checkpoint_{ch}.npz"
@@ -494,14 +551,16 @@ def channel_args(prep: Prepared, ch: str, options: FitOptions, checkpoint_dir: P
             prep.brightness_rel_sd.get(ch), prep.noise[ch], options, ckpt, options.seed, identity,
             [(g[..., ci], r[..., ci]) for g, r in
              (prep.noise_maps[f"images[{i}]"] for i in range(len(prep.images)))]
-            if prep.noise_maps else None)
+            if prep.noise_maps else None, forward)
 
 
 def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | None,
-                 identity: dict | None = None) -> dict[str, dict]:
+                 identity: dict | None = None, forward=None) -> dict[str, dict]:
     """Fit every channel (in parallel processes when there are cores); one chain file each.
-    The worker processes die with this process (:func:`die_with_parent`), even by SIGKILL."""
-    jobs = [channel_args(prep, ch, options, checkpoint_dir, identity) for ch in prep.spec.channels]
+    The worker processes die with this process (:func:`die_with_parent`), even by SIGKILL.
+    ``forward``: a forward-model factory (:func:`_model`; picklable for the processes)."""
+    jobs = [channel_args(prep, ch, options, checkpoint_dir, identity, forward)
+            for ch in prep.spec.channels]
     workers = options.workers or min(len(jobs), os.cpu_count() or 1)
     if workers <= 1 or len(jobs) == 1:
         return {j[1]: fit_channel(*j) for j in jobs}

@@ -68,7 +68,7 @@ def run_identity(spec: Spec, images: list[LoadedImage], clear: LoadedImage | Non
         JSON-ready: ``format``, ``fitmedia_version``, ``spec_sha256``, ``images`` (list of
         ``{"path", "sha256"}``), ``clear_water_sha256`` (or None), ``model``, ``options``.
     """
-    from .. import __version__
+    from ..version import __version__
 
     opts = {k: v for k, v in asdict(options).items() if k not in FREE_OPTIONS and k != "model"}
     return {

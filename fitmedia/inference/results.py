@@ -1,5 +1,6 @@
-"""results.json (CAPTURE_SPEC.md) and the files beside it: posterior samples,
-data/model images for the report."""
+"""results.json (CAPTURE_SPEC.md) and the files beside it: the fit's :class:`FitResult`
+(inference/result.py) built from the per-channel fits, posterior samples, data/model images
+for the report."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
+from ..version import __version__
 from ..regimes import regime, tank_optical_depths
 from ..spec import CHANNELS
 from ..trust import (misfit_checks, transport_reasons, not_separable_note, reduced_from_laplace,
@@ -16,8 +17,7 @@ from ..trust import (misfit_checks, transport_reasons, not_separable_note, reduc
 from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
 from .params import ALBEDO_UNIFORM_WEIGHT
-
-QUANTITIES = ("kappa_a", "kappa_s", "g", "kappa_t", "albedo")
+from .result import QUANTITIES, FitResult
 
 
 def summarise(samples: np.ndarray | None, map_value: float) -> dict:
@@ -29,74 +29,121 @@ def summarise(samples: np.ndarray | None, map_value: float) -> dict:
     return out
 
 
-def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) -> dict:
+def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions, *,
+                  model: str | None = None) -> FitResult:
+    """The :class:`FitResult` of a fit from its per-channel ``fits`` (``fit_channel``'s dicts);
+    ``model``: the name of a forward model given to the fitter (else ``options.model``)."""
     spec = prep.spec
-    params = {q: {} for q in QUANTITIES}
-    chans = {}
-    taus = {}  # optical depth light-to-wall per image, from the posterior median (else MAP) kappa_t
+    params: dict = {q: {} for q in QUANTITIES}
+    chans, taus, samples = {}, {}, {}
     for ch in spec.channels:
         f = fits[ch]
         phys = f["space"].physical_samples(f["samples"]) if "samples" in f else {}
+        samples.update({f"{ch}/{q}": v for q, v in phys.items()})
         for q in QUANTITIES:
             params[q][ch] = summarise(phys.get(q), f["map"][q])
+        # optical depth light-to-wall per image, from the posterior median (else MAP) kappa_t
         kt = params["kappa_t"][ch].get("median", params["kappa_t"][ch]["map"])
         taus[ch] = tank_optical_depths(spec, float(kt), CHANNELS.index(ch))
-        chi2, n = f["chi2"]
-        info = {"map_log_posterior": f["map_logp"], "n_evals_map": f["n_evals"],
-                "chi2_per_pixel": chi2 / max(n, 1), "n_pixels": n,
-                "brightness_calibrated": prep.brightness[ch],
-                "brightness_calibration_rel_sd": prep.brightness_rel_sd.get(ch),
-                "brightness": f["map"].get("brightness", prep.brightness[ch]),
-                "other_g_mode": f.get("other_g_mode"), "optical_depth_regime": regime(taus[ch])}
-        if "samples" in f:
-            u = f["samples"]
-            space = f["space"]
-            near = (u < space.lower + 0.02 * (space.upper - space.lower)) | \
-                   (u > space.upper - 0.02 * (space.upper - space.lower))
-            info["at_prior_bound"] = [n for n, frac in zip(space.names, near.mean(0)) if frac > 0.05]
-            if "brightness" in phys:
-                info["brightness_posterior"] = summarise(phys["brightness"], f["map"]["brightness"])
-            g90 = params["g"][ch]["q95"] - params["g"][ch]["q05"]
-            ks = params["kappa_s"][ch]
-            ka = params["kappa_a"][ch]
-            # kappa_a resolved: its 90 % interval spans less than a decade; else its shape is
-            # the prior's tail and only q95 (an upper limit) is a measurement
-            info["kappa_a_upper_limit_only"] = bool(not ka["q05"] > 0.1 * ka["q95"])
-            info.update(converged=bool(f["converged"]), reason=f["reason"], n_steps=f["n_steps"],
-                        autocorr_time=dict(zip(f["names"], np.asarray(f["tau"]).tolist())),
-                        acceptance_fraction=f["acceptance"], burn_in=f["burn"], thin=f["thin"],
-                        ess_bulk=None if f["ess"] is None else dict(zip(f["names"], f["ess"].tolist())),
-                        rhat=None if f["rhat"] is None else dict(zip(f["names"], f["rhat"].tolist())),
-                        n_samples=len(f["samples"]),
-                        g_constrained=bool(g90 < 0.5 * prior_g_interval_width(f["space"])),
-                        kappa_s_consistent_with_zero=bool(ks["q05"] < 1e-3 * ks["q95"]))
-            if "modes" in f:
-                info["g_modes"] = f["modes"]
-        if "model_used" in f:  # --model full / auto (inference/full.py)
-            info["model_used"] = f["model_used"]
-            info["multiple_scattering"] = {
-                "share": f.get("ms_share"), "share_se": f.get("ms_share_se"),
-                "share_at_single_scattering_map": f.get("ms_share_single_map"),
-                **({"refreshes": f["full_refreshes"], "converged": f["full_converged"],
-                    "moves_sd": f["full_moves_sd"], "seed_shift_sd": f["ms_seed_shift_sd"]}
-                   if f["model_used"] == "full" else {})}
-        params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys)
-        info.update(kappa_s_reduced_width_ratio=ratio, kappa_s_g_separable=separable(
-            ratio, info.get("kappa_s_consistent_with_zero")))
-        chans[ch] = info
+        chans[ch] = _channel_info(prep, ch, f, phys, params, taus[ch])
+    images = _image_records(prep, fits, taus)
+    name = model or options.model
+    used = [chans[c].get("model_used", name) for c in spec.channels]
+    model_used = "full" if "full" in used else ("single" if model is None else name)
+    first = fits[spec.channels[0]]
+    return FitResult(
+        channels=tuple(spec.channels), parameters=params,
+        diagnostics=_diagnostics(chans, spec.channels, options.mcmc),
+        trust=assess(params, chans, images, model_used, robust=options.robust),
+        model=name, model_used=model_used, fitmedia_version=__version__,
+        date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        options={k: getattr(options, k) for k in ("robust", "n_walkers", "n_tau", "max_steps",
+                                                  "global_evals", "mcmc")},
+        priors=_priors(spec, first["names"], first["space"]), spec=str(spec.source),
+        name=spec.name, seed=options.seed,
+        calibration={"brightness_source": prep.brightness_source,
+                     "brightness": {c: chans[c]["brightness"] for c in spec.channels}},
+        noise={"source": prep.noise_source,
+               "per_channel": {c: {"gain": g, "read_var": r} for c, (g, r) in prep.noise.items()},
+               "per_image": prep.noise_per_image},  # source and values per entry (issue 16)
+        images=images, notes=prep.notes, samples=samples or None)
+
+
+def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
+                  taus: tuple[float, ...]) -> dict:
+    """results.json's ``diagnostics.channels.<ch>``; adds ``kappa_s_reduced`` to ``params``."""
+    chi2, n = f["chi2"]
+    info = {"map_log_posterior": f["map_logp"], "n_evals_map": f["n_evals"],
+            "chi2_per_pixel": chi2 / max(n, 1), "n_pixels": n,
+            "brightness_calibrated": prep.brightness[ch],
+            "brightness_calibration_rel_sd": prep.brightness_rel_sd.get(ch),
+            "brightness": f["map"].get("brightness", prep.brightness[ch]),
+            "other_g_mode": f.get("other_g_mode"), "optical_depth_regime": regime(taus)}
+    if "samples" in f:
+        info.update(_sampler_info(f, phys, {q: params[q][ch] for q in QUANTITIES}))
+    if "model_used" in f:  # --model full / auto (inference/full.py)
+        info["model_used"] = f["model_used"]
+        info["multiple_scattering"] = {
+            "share": f.get("ms_share"), "share_se": f.get("ms_share_se"),
+            "share_at_single_scattering_map": f.get("ms_share_single_map"),
+            **({"refreshes": f["full_refreshes"], "converged": f["full_converged"],
+                "moves_sd": f["full_moves_sd"], "seed_shift_sd": f["ms_seed_shift_sd"]}
+               if f["model_used"] == "full" else {})}
+    params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys)
+    info.update(kappa_s_reduced_width_ratio=ratio, kappa_s_g_separable=separable(
+        ratio, info.get("kappa_s_consistent_with_zero")))
+    return info
+
+
+def _sampler_info(f: dict, phys: dict, p: dict) -> dict:
+    """One channel's sampler diagnostics (``p``: its parameter summaries by quantity)."""
+    u, space = f["samples"], f["space"]
+    near = (u < space.lower + 0.02 * (space.upper - space.lower)) | \
+           (u > space.upper - 0.02 * (space.upper - space.lower))
+    info: dict = {"at_prior_bound": [n for n, frac in zip(space.names, near.mean(0))
+                                     if frac > 0.05]}
+    if "brightness" in phys:
+        info["brightness_posterior"] = summarise(phys["brightness"], f["map"]["brightness"])
+    g90 = p["g"]["q95"] - p["g"]["q05"]
+    ks, ka = p["kappa_s"], p["kappa_a"]
+    # kappa_a resolved: its 90 % interval spans less than a decade; else its shape is
+    # the prior's tail and only q95 (an upper limit) is a measurement
+    info["kappa_a_upper_limit_only"] = bool(not ka["q05"] > 0.1 * ka["q95"])
+    names = f["names"]
+    info.update(converged=bool(f["converged"]), reason=f["reason"], n_steps=f["n_steps"],
+                autocorr_time=dict(zip(names, np.asarray(f["tau"]).tolist())),
+                acceptance_fraction=f["acceptance"], burn_in=f["burn"], thin=f["thin"],
+                ess_bulk=None if f["ess"] is None else dict(zip(names, f["ess"].tolist())),
+                rhat=None if f["rhat"] is None else dict(zip(names, f["rhat"].tolist())),
+                n_samples=len(u),
+                g_constrained=bool(g90 < 0.5 * prior_g_interval_width(space)),
+                kappa_s_consistent_with_zero=bool(ks["q05"] < 1e-3 * ks["q95"]))
+    if "modes" in f:
+        info["g_modes"] = f["modes"]
+    return info
+
+
+def _diagnostics(chans: dict[str, dict], channels, mcmc: bool) -> dict:
+    """results.json's ``diagnostics``: the chains' overall convergence, then ``channels``."""
     diag: dict = {}
-    if options.mcmc:
-        diag.update(converged=all(chans[c]["converged"] for c in spec.channels),
-                    n_steps=int(max(chans[c]["n_steps"] for c in spec.channels)),
+    if mcmc:
+        diag.update(converged=all(chans[c]["converged"] for c in channels),
+                    n_steps=int(max(chans[c]["n_steps"] for c in channels)),
                     autocorr_time_max=float(max(max(chans[c]["autocorr_time"].values())
-                                                for c in spec.channels)),
+                                                for c in channels)),
                     acceptance_fraction=float(np.mean([chans[c]["acceptance_fraction"]
-                                                       for c in spec.channels])))
-        if all(chans[c]["rhat"] for c in spec.channels):
-            diag.update(rhat_max=max(max(chans[c]["rhat"].values()) for c in spec.channels),
-                        ess_bulk_min=min(min(chans[c]["ess_bulk"].values()) for c in spec.channels))
+                                                       for c in channels])))
+        if all(chans[c]["rhat"] for c in channels):
+            diag.update(rhat_max=max(max(chans[c]["rhat"].values()) for c in channels),
+                        ess_bulk_min=min(min(chans[c]["ess_bulk"].values()) for c in channels))
     diag["channels"] = chans
-    images = []
+    return diag
+
+
+def _image_records(prep: Prepared, fits: dict[str, dict], taus: dict) -> list[dict]:
+    """results.json's ``images``: per image its files, concentration, excluded pixels and
+    per channel the pixels used, chi2/pixel at the MAP and the optical depth."""
+    spec, images = prep.spec, []
     for i, (entry, im) in enumerate(zip(spec.images, prep.images)):
         per = {}
         for ch in spec.channels:
@@ -107,40 +154,20 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions) ->
                 per[ch]["multiple_scattering_share"] = fits[ch]["ms_share"][i]
         images.append({"path": [str(p) for p in entry.paths], "concentration": entry.concentration,
                        "n_saturated": im.n_saturated, "n_masked": im.n_masked, "channels": per})
-    used = [chans[c].get("model_used", options.model) for c in spec.channels]
-    model_used = "full" if "full" in used else "single"
-    return {
-        "fitmedia_spec": 1,
-        "model": options.model,
-        "model_used": model_used,
-        "trust": assess(params, chans, images, model_used, robust=options.robust),
-        "units": {"length": "mm", "kappa": "1/mm"},
-        "channels": list(spec.channels),
-        "parameters": params,
-        "diagnostics": diag,
-        "fitmedia_version": __version__,
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "options": {k: getattr(options, k) for k in ("robust", "n_walkers", "n_tau", "max_steps",
-                                                     "global_evals", "mcmc")},
-        "priors": {"kappa_t": "log-uniform",
-                   "albedo": (f"mixture: {1 - ALBEDO_UNIFORM_WEIGHT:g} flat in logit albedo "
-                              f"(log-uniform kappa_a, kappa_s) + {ALBEDO_UNIFORM_WEIGHT:g} "
-                              "uniform in albedo, on the bounds"),
-                   "g": "uniform", "spec_overrides": spec.priors,
-                   "bounds": {n: [lo, hi] for n, lo, hi in zip(
-                       fits[spec.channels[0]]["names"], fits[spec.channels[0]]["space"].lower.tolist(),
-                       fits[spec.channels[0]]["space"].upper.tolist()) if n != "log_brightness"}},
-        "spec": str(spec.source),
-        "name": spec.name,
-        "seed": options.seed,
-        "calibration": {"brightness_source": prep.brightness_source,
-                        "brightness": {c: chans[c]["brightness"] for c in spec.channels}},
-        "noise": {"source": prep.noise_source,
-                  "per_channel": {c: {"gain": g, "read_var": r} for c, (g, r) in prep.noise.items()},
-                  "per_image": prep.noise_per_image},  # source and values per entry (issue 16)
-        "images": images,
-        "notes": prep.notes,
-    }
+    return images
+
+
+def _priors(spec, names: list[str], space) -> dict:
+    """results.json's ``priors``: the priors in words and the bounds of the sampler's
+    coordinates (the spec's ``priors`` where it sets them)."""
+    return {"kappa_t": "log-uniform",
+            "albedo": (f"mixture: {1 - ALBEDO_UNIFORM_WEIGHT:g} flat in logit albedo "
+                       f"(log-uniform kappa_a, kappa_s) + {ALBEDO_UNIFORM_WEIGHT:g} "
+                       "uniform in albedo, on the bounds"),
+            "g": "uniform", "spec_overrides": spec.priors,
+            "bounds": {n: [lo, hi] for n, lo, hi in zip(names, space.lower.tolist(),
+                                                         space.upper.tolist())
+                       if n != "log_brightness"}}
 
 
 def _reduced(f: dict, phys: dict) -> tuple[dict, float | None]:
@@ -169,8 +196,10 @@ def assess(params: dict, chans: dict[str, dict], images: list[dict], model: str,
             "misfit": checks}
 
 
-def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results: dict) -> None:
-    """results.json, samples.npz (posterior, physical and unconstrained), fit_images.npz."""
+def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], result: FitResult
+                  ) -> None:
+    """results.json (``result.to_json()``), samples.npz (posterior, physical and
+    unconstrained), fit_images.npz."""
     out_dir = Path(out_dir)
     spec = prep.spec
     samples = {}
@@ -204,7 +233,7 @@ def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], results:
             imgs[f"ms_{i}"] = np.stack([fits[c]["ms_images"][i] for c in spec.channels], -1)
     imgs["channels"] = np.array(spec.channels)
     save_npz(out_dir / "fit_images.npz", imgs)
-    write_json(out_dir / "results.json", results)
+    write_json(out_dir / "results.json", result.to_json())
 
 
 def write_inference_data(path: Path, fit: dict) -> None:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import __version__
+from ..version import __version__
 from ..errors import InputError
 from ..regimes import INFORMATIVE_OPTICAL_DEPTH
 from ..util import atomic_write_text
