@@ -210,14 +210,74 @@ def corpus_base(tmp_path_factory):
     return root, corpus.make_base(root)
 
 
+#: corpus cases run as real subprocesses (python -m fitmedia.cli: interpreter start-up, C-level
+#: stderr, the environment, a hang killed by the timeout), one or more per risky class; the
+#: others run through fitmedia.cli.main in the test's process (run_in_process), which proves
+#: the same exit code, message, one line and no traceback for ~1 s less CPU each
+SUBPROCESS_CASES = {"alias_bomb", "deep_nesting", "unsafe_tag", "truncated_image",
+                    "raw_truncated", "huge_fit", "unknown_medium", "empty_checkpoint",
+                    "bad_memory_env"}
+
+
+def run_in_process(case, d, base, capfd, caplog, monkeypatch):
+    """``case`` through :func:`fitmedia.cli.main` in this process, as make_corpus.run_case runs
+    it in a subprocess: the case's folder as the working directory, its environment, a timer
+    for the timeout (a hang), stderr captured at the file descriptor (C libraries' complaints
+    too), log records of level WARNING and up as the lines `python -m` would print for them,
+    and any uncaught exception (a warning is one under pytest) as its traceback."""
+    import logging
+    import signal
+    import subprocess
+    import traceback
+
+    from fitmedia.cli import main
+
+    def hang(*_):
+        raise TimeoutError(f"no answer in {case.timeout:g} s (a hang)")
+
+    argv = [a.replace("{d}", str(d)).replace("{base}", str(base.parent)) for a in case.argv]
+    monkeypatch.chdir(d)
+    for k, v in case.env.items():
+        monkeypatch.setenv(k, v)
+    capfd.readouterr()
+    caplog.clear()
+    old = signal.signal(signal.SIGALRM, hang)
+    signal.setitimer(signal.ITIMER_REAL, case.timeout)
+    trace = ""
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse: usage, then the error line
+        code = 0 if exc.code is None else exc.code
+    except Exception:  # noqa: BLE001 - a traceback is what the case must not give
+        code, trace = 1, traceback.format_exc()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+    logged = "".join(f"fitmedia: {r.getMessage()}\n" for r in caplog.records
+                     if r.levelno >= logging.WARNING)
+    err = capfd.readouterr().err
+    return subprocess.CompletedProcess(argv, code, "", logged + err + trace)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("case", corpus.cases(), ids=lambda c: c.name)
-def test_bad_input_corpus(corpus_base, case):
-    """Each case of the bad-input corpus through the real entry point (python -m fitmedia.cli
-    in a subprocess): its exit code, the words of its one-line message, no traceback, an
-    answer within the case's timeout (10 s: no hang), and nothing left in its --out folder.
-    The reference is the case table itself (make_corpus.py), written from issue 17."""
+def test_bad_input_corpus(corpus_base, case, capfd, caplog, monkeypatch):
+    """Each case of the bad-input corpus through the real entry point: its exit code, the words
+    of its one-line message, no traceback, an answer within the case's timeout (10 s: no
+    hang), and nothing left in its --out folder.  The reference is the case table itself
+    (make_corpus.py), written from issue 17.  ``SUBPROCESS_CASES`` run as
+    ``python -m fitmedia.cli`` in a subprocess, the others through ``fitmedia.cli.main`` in
+    this process (``run_in_process``; since 2026-12-01, docs/testing.md "Test costs")."""
     root, base = corpus_base
     d = corpus.build_case(case, root, base)
-    res, _ = corpus.run_case(case, d, base)
+    if case.name in SUBPROCESS_CASES:
+        res, _ = corpus.run_case(case, d, base)
+    else:
+        res = run_in_process(case, d, base, capfd, caplog, monkeypatch)
     assert corpus.problems(case, res, d) == [], res.stderr
+
+
+def test_every_subprocess_case_is_in_the_corpus():
+    """The names in SUBPROCESS_CASES are corpus cases (a renamed case would silently move to
+    the in-process runs); reference: the case table."""
+    assert SUBPROCESS_CASES <= {c.name for c in corpus.cases()}
