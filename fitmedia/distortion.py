@@ -57,7 +57,11 @@ def undistort(coeffs, xd, yd, *, max_iter: int = 60
     :data:`TOLERANCE` or the Jacobian is not positive there (a point beyond a fold: the
     spec refuses distortions with such points in the image, ``check_monotonic``).
     """
-    xd, yd = np.asarray(xd, float), np.asarray(yd, float)
+    with np.errstate(all="ignore"):  # absurd coefficients overflow: not converged, no warning
+        return _newton(coeffs, np.asarray(xd, float), np.asarray(yd, float), max_iter)
+
+
+def _newton(coeffs, xd: np.ndarray, yd: np.ndarray, max_iter: int):
     x, y = xd.copy(), yd.copy()
     ex, ey = (a - b for a, b in zip(distort(coeffs, x, y), (xd, yd)))
     err = np.hypot(ex, ey)
@@ -67,9 +71,8 @@ def undistort(coeffs, xd, yd, *, max_iter: int = 60
             break
         a, b, d = jacobian(coeffs, x, y)
         det = a * d - b * b
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dx = np.where(todo, -(d * ex - b * ey) / det, 0.0)
-            dy = np.where(todo, -(a * ey - b * ex) / det, 0.0)
+        dx = np.where(todo, -(d * ex - b * ey) / det, 0.0)
+        dy = np.where(todo, -(a * ey - b * ex) / det, 0.0)
         dx, dy = np.nan_to_num(dx), np.nan_to_num(dy)
         t = np.ones_like(x)
         for _ in range(40):
@@ -92,10 +95,10 @@ def check_monotonic(coeffs, width: int, height: int, fx: float, fy: float, cx: f
     """Why the distortion is not one-to-one over the image [0, width] x [0, height], or None.
 
     The image's border (a point per pixel, at most 1025 per side) and a 33 x 33 grid inside
-    it are undistorted;
-    each must have a preimage, and the Jacobian's determinant must stay positive along the
-    straight segment from the principal point's preimage (0, 0) to it (``steps`` points):
-    where it reaches 0 the map folds back (the distorted radius stops growing).
+    it are undistorted; each must have a preimage, and the Jacobian's determinant must stay
+    positive along the straight segment from the principal point's preimage (0, 0) to it
+    (``steps`` points): where it reaches 0 the map folds back (the distorted radius stops
+    growing).
     """
     n = min(max(width, height), 1024) + 1
     edge = np.linspace(0.0, 1.0, n)
@@ -109,11 +112,12 @@ def check_monotonic(coeffs, width: int, height: int, fx: float, fy: float, cx: f
         return (f"no undistorted direction reaches pixel ({px[k]:.0f}, {py[k]:.0f}): the "
                 "distortion folds back before the image's edge")
     t = np.linspace(0.0, 1.0, steps + 1)[1:, None]
-    a, b, d = jacobian(coeffs, t * x, t * y)
-    bad = a * d - b * b <= 0
-    if np.any(bad):
+    with np.errstate(all="ignore"):
+        a, b, d = jacobian(coeffs, t * x, t * y)
+        bad = ~(a * d - b * b > 0)
         s, k = np.unravel_index(int(np.argmax(bad)), bad.shape)
         qx, qy = distort(coeffs, t[s, 0] * x[k], t[s, 0] * y[k])
+    if np.any(bad):
         return (f"the distortion folds back near pixel ({cx + fx * qx:.0f}, {cy + fy * qy:.0f}) "
                 "inside the image (its Jacobian's determinant reaches 0 there)")
     return None

@@ -43,7 +43,7 @@ def undistorted(camera: Camera, x, y) -> tuple[np.ndarray, np.ndarray]:
     return xu, yu
 
 
-def camera_rays(camera: Camera, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def camera_rays(camera: Camera, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Unit directions (..., 3) of the camera's rays through image points (x, y): the pinhole
     of CAPTURE_SPEC.md, through the lens distortion when the camera has one."""
     f, r, u = camera.frame()
@@ -65,9 +65,10 @@ def project(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     if camera.distortion is not None:
         from .distortion import distort, undistort
 
-        xd, yd = distort(camera.distortion, xn, yn)
-        xu, yu, ok = undistort(camera.distortion, xd, yd)
-        ok &= np.hypot(xu - xn, yu - yn) <= 1e-9 * (1.0 + np.hypot(xn, yn))
+        with np.errstate(all="ignore"):  # far outside the image the polynomial may overflow
+            xd, yd = distort(camera.distortion, xn, yn)
+            xu, yu, ok = undistort(camera.distortion, xd, yd)
+            ok &= np.hypot(xu - xn, yu - yn) <= 1e-9 * (1.0 + np.hypot(xn, yn))
         xn, yn = np.where(ok, xd, np.nan), np.where(ok, yd, np.nan)
     return camera.cx + camera.fx * xn, camera.cy + camera.fy * yn, depth > 0
 
