@@ -138,6 +138,24 @@ def test_single_scattering_sees_the_bulb_where_opencv_projects_it():
     assert np.hypot(*(pin - want)) > 1.0
 
 
+def test_unseen_bulb_is_placed_through_the_distortion():
+    """Reference: cv2.projectPoints.  The camera of test_bad_inputs turned 56 degrees away
+    (80 x 60): the message names the bulb's pixel through the distortion, (-76, 28) as OpenCV
+    puts it (the bare pinhole: (-97, 28)); with k1 = -0.5 the bulb's direction (normalised
+    radius 0.91) lies beyond the map's fold (0.82), where the polynomial would put it back
+    towards the image, and the message says so instead of naming a pixel."""
+    from fitmedia.inference.fit import why_bulb_unseen
+
+    d = geometry_dict()
+    d["camera"].update(look_at=[900, 0, 0], distortion=BARREL)
+    spec = parse_spec(d, require_images=False)
+    x, y = cv2_project(spec.camera, spec.light.position)[0]
+    assert f"near pixel ({x:.0f}, {y:.0f})" in why_bulb_unseen(spec) and round(x) == -76
+    d["camera"]["distortion"] = {"k1": -0.5}
+    assert "beyond the fold of camera.distortion" in why_bulb_unseen(
+        parse_spec(d, require_images=False))
+
+
 # ------------------------------------------------------------ Mitsuba's resampling
 def _glow_mask(spec, ref, h_min):
     x, y = pixel_grid(spec.camera)
@@ -266,6 +284,7 @@ def test_fit_needs_the_distortion(tmp_path, seed):
     ({"k1": "0.1"}, "camera.distortion.k1", "'0.1'"),
     ({"k1": -0.9}, "camera.distortion", "folds back"),
     ({"k1": 0.3, "k2": -0.5}, "camera.distortion", "folds back"),
+    ({"p1": 1e300}, "camera.distortion", "folds back"),
 ])
 def test_bad_distortion_is_refused_naming_the_field(patch, field, words):
     """Reference: the spec contract (docs/spec.md, "Lens distortion"): unknown keys, non-finite
