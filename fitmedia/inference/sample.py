@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -83,7 +83,6 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     ``redraw``: an extra Metropolis-Hastings move beside differential evolution (:class:`Redraw`).
     """
     import emcee
-    from tqdm.auto import tqdm
 
     ndim = len(x_map)
     n_walkers = n_walkers or max(4 * ndim, 16)
@@ -111,55 +110,92 @@ def run_chain(log_prob: Callable[[np.ndarray], float], x_map: np.ndarray, cov: n
     # emcee draws from a numpy RandomState; seed it from our Generator (explicit, reproducible);
     # a resumed chain continues with the random state stored in its checkpoint
     sampler._random = np.random.RandomState(int(rng.integers(2**31 - 1)))
-    done = sampler.iteration
-    ident = json.dumps(identity, sort_keys=True)
-    old_tau = np.inf
-    converged, reason = False, f"step cap {max_steps} reached before {n_tau:g} autocorrelation times"
-    tau = np.full(ndim, np.nan)
-    bar = tqdm(total=max_steps, initial=done, desc=f"MCMC {label}".strip(), unit="step",
-               disable=not progress, leave=False, mininterval=1.0)
-    try:
-        remaining = max_steps - done
-        for _ in sampler.sample(start, iterations=max(remaining, 0), progress=False, store=True):
-            bar.update(1)
-            it = sampler.iteration
-            if it % check_every:
-                continue
-            if checkpoint is not None:
-                save_checkpoint(checkpoint, backend, ident)
-            tau = sampler.get_autocorr_time(tol=0)
-            need = n_tau * np.max(tau)
-            bar.set_postfix_str(f"tau={np.max(tau):.0f}, need {need:.0f}")
-            if it >= need and np.all(np.abs(old_tau - tau) / tau < 0.05):
-                burn_now = int(min(3 * np.max(tau), it // 2))
-                ess, rhat = arviz_diagnostics(np.swapaxes(sampler.get_chain(discard=burn_now), 0, 1))
-                if ess is None or (np.max(rhat) <= RHAT_MAX and np.min(ess) >= ESS_MIN):
-                    converged = True
-                    reason = f"chain {it} steps >= {n_tau:g} x tau_max {np.max(tau):.1f}"
-                    if ess is not None:
-                        reason += f"; split R-hat {np.max(rhat):.3f}, bulk ESS {np.min(ess):.0f}"
+    run = _ChainRun(sampler, backend, checkpoint, json.dumps(identity, sort_keys=True), n_tau,
+                    max_steps, check_every, tau=np.full(ndim, np.nan))
+    run.sample(start, progress, label)
+    return run.result()
+
+
+@dataclass
+class _ChainRun:
+    """:func:`run_chain`'s sampling loop and its result: an emcee ``sampler`` stepped until
+    the convergence criteria hold or ``max_steps``, checkpointed every ``check_every`` steps."""
+
+    sampler: Any
+    backend: Any
+    checkpoint: Path | None
+    ident: str  # the run identity as stored in the checkpoint (one JSON line)
+    n_tau: float
+    max_steps: int
+    check_every: int
+    converged: bool = False
+    reason: str = ""
+    tau: np.ndarray | None = None
+
+    def sample(self, start, progress: bool, label: str) -> None:
+        from tqdm.auto import tqdm
+
+        sampler, n_tau, max_steps = self.sampler, self.n_tau, self.max_steps
+        done = sampler.iteration
+        old_tau = np.inf
+        self.reason = f"step cap {max_steps} reached before {n_tau:g} autocorrelation times"
+        bar = tqdm(total=max_steps, initial=done, desc=f"MCMC {label}".strip(), unit="step",
+                   disable=not progress, leave=False, mininterval=1.0)
+        try:
+            remaining = max_steps - done
+            for _ in sampler.sample(start, iterations=max(remaining, 0), progress=False,
+                                    store=True):
+                bar.update(1)
+                it = sampler.iteration
+                if it % self.check_every:
+                    continue
+                if self.checkpoint is not None:
+                    save_checkpoint(self.checkpoint, self.backend, self.ident)
+                tau = self.tau = sampler.get_autocorr_time(tol=0)
+                need = n_tau * np.max(tau)
+                bar.set_postfix_str(f"tau={np.max(tau):.0f}, need {need:.0f}")
+                if it >= need and np.all(np.abs(old_tau - tau) / tau < 0.05) and \
+                        self._settled(it):
                     break
-                reason = (f"step cap {max_steps} reached: split R-hat {np.max(rhat):.3f} "
-                          f"(need <= {RHAT_MAX}) or bulk ESS {np.min(ess):.0f} (need >= {ESS_MIN})")
-            old_tau = tau
-    finally:
-        bar.close()
-    if checkpoint is not None:
-        save_checkpoint(checkpoint, backend, ident)
-    n_steps = sampler.iteration
-    if n_steps >= 2 * check_every and not np.all(np.isfinite(tau)):
-        tau = sampler.get_autocorr_time(tol=0)
-    elif n_steps >= check_every:
-        tau = sampler.get_autocorr_time(tol=0)
-    tmax = float(np.nanmax(tau)) if np.any(np.isfinite(tau)) else 1.0
-    burn = int(min(3 * tmax, n_steps // 2))
-    thin = max(1, int(tmax / 2))
-    samples = sampler.get_chain(discard=burn, thin=thin, flat=True)
-    logp = sampler.get_log_prob(discard=burn, thin=thin, flat=True)
-    chain = np.swapaxes(sampler.get_chain(discard=burn), 0, 1)
-    ess, rhat = arviz_diagnostics(chain)
-    return ChainResult(samples, n_steps, np.asarray(tau), float(np.mean(sampler.acceptance_fraction)),
-                       converged, reason, burn, thin, logp, chain, ess, rhat)
+                old_tau = tau
+        finally:
+            bar.close()
+        if self.checkpoint is not None:
+            save_checkpoint(self.checkpoint, self.backend, self.ident)
+
+    def _settled(self, it: int) -> bool:
+        """R-hat and ESS of the chain after burn-in (the tau criteria already hold)."""
+        tau = self.tau
+        burn_now = int(min(3 * np.max(tau), it // 2))
+        ess, rhat = arviz_diagnostics(np.swapaxes(self.sampler.get_chain(discard=burn_now), 0, 1))
+        if ess is None or (np.max(rhat) <= RHAT_MAX and np.min(ess) >= ESS_MIN):
+            self.converged = True
+            self.reason = f"chain {it} steps >= {self.n_tau:g} x tau_max {np.max(tau):.1f}"
+            if ess is not None:
+                self.reason += f"; split R-hat {np.max(rhat):.3f}, bulk ESS {np.min(ess):.0f}"
+            return True
+        self.reason = (f"step cap {self.max_steps} reached: split R-hat {np.max(rhat):.3f} "
+                       f"(need <= {RHAT_MAX}) or bulk ESS {np.min(ess):.0f} (need >= {ESS_MIN})")
+        return False
+
+    def result(self) -> ChainResult:
+        """The chain after burn-in (3 tau_max) and thinned (tau_max / 2), with diagnostics."""
+        sampler, tau = self.sampler, self.tau
+        n_steps = sampler.iteration
+        if n_steps >= 2 * self.check_every and not np.all(np.isfinite(tau)):
+            tau = sampler.get_autocorr_time(tol=0)
+        elif n_steps >= self.check_every:
+            tau = sampler.get_autocorr_time(tol=0)
+        tmax = float(np.nanmax(tau)) if np.any(np.isfinite(tau)) else 1.0
+        burn = int(min(3 * tmax, n_steps // 2))
+        thin = max(1, int(tmax / 2))
+        samples = sampler.get_chain(discard=burn, thin=thin, flat=True)
+        logp = sampler.get_log_prob(discard=burn, thin=thin, flat=True)
+        chain = np.swapaxes(sampler.get_chain(discard=burn), 0, 1)
+        ess, rhat = arviz_diagnostics(chain)
+        return ChainResult(samples, n_steps, np.asarray(tau),
+                           float(np.mean(sampler.acceptance_fraction)), self.converged,
+                           self.reason, burn, thin, logp, chain, ess, rhat)
 
 
 @dataclass(frozen=True)
