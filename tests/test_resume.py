@@ -74,41 +74,54 @@ def test_kill_9_and_resume_gives_the_uninterrupted_chain(tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("watched", ["checkpoint_R.npz", "checkpoint_R_mode2.npz"])
-def test_kill_during_either_mode_and_resume(tmp_path, watched):
-    """Both modes of g sampled (White Grapefruit Juice 9 ml, R only: the other mode 1.6
-    log-posterior units below the MAP, tests/test_roundtrip.py): a `kill -9` while the first
-    or the second mode's chain samples, then `--resume`, gives both chains step for step as an
-    uninterrupted run, and the same mixed posterior samples and mode weights.  Failed before
-    the second chain and the bridge had random streams of their own: a resumed first chain
-    skips its initial draws, which shifted every later draw (809 vs 804 mixed samples)."""
-    import json
-
+@pytest.fixture(scope="module")
+def two_mode_capture(tmp_path_factory):
+    """White Grapefruit Juice 9 ml at 64 x 48, channel R only, and the output of one
+    uninterrupted fit of it (``whole``): the reference of both kill points below, computed
+    once (it was run by each of them until 2026-12-01; docs/testing.md "Test costs")."""
     from fitmedia.medium import medium_by_name
     from fitmedia.spec import load_spec
     from fitmedia.synth import synthesize
     from conftest import ROOT
 
+    d = tmp_path_factory.mktemp("two_mode")
     geo = load_spec(ROOT / "capture_specs" / "bulb_64x48.yaml", require_images=False)
-    spec = synthesize(geo, tmp_path / "cap", medium_by_name("White Grapefruit Juice"), [9],
+    spec = synthesize(geo, d / "cap", medium_by_name("White Grapefruit Juice"), [9],
                       seed=1174215102)
     spec.write_text(spec.read_text() + "channels: [R]\n")
-    _start_and_kill(spec, tmp_path / "killed", watched)
+    res = subprocess.run(_fit_cmd(spec, d / "whole"), capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr
+    return spec, d / "whole"
 
-    for out, extra in (("killed", ("--resume",)), ("whole", ())):
-        res = subprocess.run(_fit_cmd(spec, tmp_path / out, *extra), capture_output=True,
-                             text=True, timeout=600)
-        assert res.returncode == 0, res.stderr
+
+@pytest.mark.slow
+@pytest.mark.parametrize("watched", ["checkpoint_R.npz", "checkpoint_R_mode2.npz"])
+def test_kill_during_either_mode_and_resume(two_mode_capture, tmp_path, watched):
+    """Both modes of g sampled (White Grapefruit Juice 9 ml, R only: the other mode 1.6
+    log-posterior units below the MAP, tests/test_roundtrip.py): a `kill -9` while the first
+    or the second mode's chain samples, then `--resume`, gives both chains step for step as an
+    uninterrupted run (``two_mode_capture``'s, shared by both kill points), and the same mixed
+    posterior samples and mode weights.  Failed before the second chain and the bridge had
+    random streams of their own: a resumed first chain skips its initial draws, which shifted
+    every later draw (809 vs 804 mixed samples)."""
+    import json
+
+    spec, whole = two_mode_capture
+    _start_and_kill(spec, tmp_path / "killed", watched)
+    res = subprocess.run(_fit_cmd(spec, tmp_path / "killed", "--resume"), capture_output=True,
+                         text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    killed = tmp_path / "killed"
     for name in ("checkpoint_R.npz", "checkpoint_R_mode2.npz"):
-        a = np.load(tmp_path / "killed" / name)["chain"]
-        b = np.load(tmp_path / "whole" / name)["chain"]
+        a = np.load(killed / name)["chain"]
+        b = np.load(whole / name)["chain"]
         assert a.shape[0] == 300
         np.testing.assert_array_equal(a, b)
-    np.testing.assert_array_equal(np.load(tmp_path / "killed" / "samples.npz")["R/g"],
-                                  np.load(tmp_path / "whole" / "samples.npz")["R/g"])
-    modes = [json.loads((tmp_path / d / "results.json").read_text())["diagnostics"]["channels"]
-             ["R"]["g_modes"] for d in ("killed", "whole")]
+    np.testing.assert_array_equal(np.load(killed / "samples.npz")["R/g"],
+                                  np.load(whole / "samples.npz")["R/g"])
+    modes = [json.loads((d / "results.json").read_text())["diagnostics"]["channels"]
+             ["R"]["g_modes"] for d in (killed, whole)]
     assert [m["weight"] for m in modes[0]] == [m["weight"] for m in modes[1]]
 
 
