@@ -259,4 +259,29 @@ def test_report_shows_the_multiple_scattering_part(fit_outputs, tmp_path):
     np.savez(out / "fit_images.npz", **z, ms_0=ms)
     text = write_report(out).read_text(encoding="ascii")
     assert "single- and multiple-scattering parts beside it" in text
-    assert len(IMG_TAG.findall(text)) == 1
+    # one image figure (the geometry preview, found from here, is the other <img>)
+    assert len([t for t in IMG_TAG.findall(text) if "geometry preview" not in t]) == 1
+
+
+def test_report_multiple_scattering_table_and_full_model_causes(fit_outputs, tmp_path):
+    """A full-transport result (results.json diagnostics.channels.G.multiple_scattering, as
+    inference/results.py writes it) gets its own table with the share and its error, the
+    refreshes and the seed shift in words, not a raw dict; an untrusted full-model result
+    names the term's Monte Carlo error as a cause and does not tell the user to switch to
+    the model that was already used."""
+    out = _copy(fit_outputs["map"], tmp_path / "fit")
+    results = json.loads((out / "results.json").read_text())
+    results["model_used"] = "full"
+    results["diagnostics"]["channels"]["G"].update(model_used="full", multiple_scattering={
+        "share": [0.6123], "share_se": [0.0123], "share_at_single_scattering_map": [0.55],
+        "refreshes": 3, "converged": True, "moves_sd": [2.0, 0.4, 0.05], "seed_shift_sd": 3.25})
+    results["trust"].update(ok=False, reasons=["the multiple-scattering term's own Monte Carlo "
+                                               "error moves the values of channel G by 3.2 sd"])
+    (out / "results.json").write_text(json.dumps(results))
+    text = write_report(out).read_text(encoding="ascii")
+    ms = text[text.index("<h2>Multiple scattering</h2>"):]
+    ms = ms[:ms.index("</table>")]
+    assert "0.612 &plusmn; 0.012" in ms and "3.25" in ms and "Refreshes settled" in ms
+    assert "{" not in ms and "{'share'" not in text  # no raw dict anywhere
+    box = text[text.index('class="untrusted"'):text.index("<h2>Estimates</h2>")]
+    assert "Monte Carlo error" in box and "--model full" not in box

@@ -330,6 +330,54 @@ def _model_text(results: dict) -> str:
     return str(model) if used in (None, model) else f"{model} (used: {used})"
 
 
+def _trust_causes(results: dict) -> str:
+    """Common causes of an untrusted result, for the model that was used."""
+    if results.get("model_used", results.get("model")) == "full":
+        return ("With full transport: the multiple-scattering term's Monte Carlo error, which "
+                "moves the fit by more than its intervals (docs/inference.md, 'Full transport "
+                "in the fit'); a wrong geometry or concentration in the spec; a wrong noise "
+                "model. See the residual images below.")
+    return ("Common causes: multiple scattering, which the single-scattering model leaves out "
+            "(dilute further, or fit with <code>--model full</code>; "
+            "docs/multiple_scattering.md); a wrong geometry or concentration in the spec; a "
+            "wrong noise model. See the residual images below.")
+
+
+def _ms_section(results: dict) -> str:
+    """The multiple-scattering term per channel (``--model full`` / ``auto``), as a table."""
+    chans = results.get("diagnostics", {}).get("channels", {})
+    ms = {ch: info["multiple_scattering"] for ch, info in chans.items()
+          if isinstance(info.get("multiple_scattering"), dict)}
+    if not ms:
+        return ""
+
+    def per_image(v: Any, se: Any = None) -> str:
+        if not isinstance(v, list):
+            return _cell(v)
+        errs = se if isinstance(se, list) and len(se) == len(v) else [None] * len(v)
+        return ", ".join(format_sig(x, 3) + ("" if e is None else f" &plusmn; {format_sig(e, 2)}")
+                         for x, e in zip(v, errs))
+
+    fields = [
+        ("Model used", lambda i, c: html.escape(str(chans[c].get("model_used", "&mdash;")))),
+        ("Share of the glow (per image)", lambda i, c: per_image(i.get("share"), i.get("share_se"))),
+        ("Share at the single-scattering MAP", lambda i, c: per_image(
+            i.get("share_at_single_scattering_map"))),
+        ("Refreshes of the term", lambda i, c: _cell(i.get("refreshes"))),
+        ("Refreshes settled", lambda i, c: _cell(i.get("converged"))),
+        ("Last move [posterior sd]", lambda i, c: _cell(_num((i.get("moves_sd") or [None])[-1]), 3)),
+        ("Move with other random numbers [posterior sd]",
+         lambda i, c: _cell(_num(i.get("seed_shift_sd")), 3)),
+    ]
+    rows = [[label] + [get(info, c) for c, info in ms.items()] for label, get in fields]
+    rows = [r for r in rows if any(x != "&mdash;" for x in r[1:])]
+    return ("<h2>Multiple scattering</h2>\n"
+            + _table(["Field"] + [f"Channel {html.escape(c)}" for c in ms], rows)
+            + '<p class="muted">Share: the multiple-scattering term over the glow (pixels off the '
+              "bulb), with its Monte Carlo standard error; the moves are those of the fit in "
+              "posterior sd of log &kappa;<sub>t</sub> and atanh g (docs/inference.md).</p>\n")
+
+
 def _trust_box(results: dict) -> str:
     """results.json's ``trust`` at the top of the report: a red box with the reasons when the
     misfit guard fired, a green line when it passed, its notes (kappa_s and g not separately
@@ -344,14 +392,10 @@ def _trust_box(results: dict) -> str:
                     for n in trust.get("notes") or [])
     if trust.get("ok") is False:
         items = "".join(f"<li>{html.escape(str(r))}</li>" for r in trust.get("reasons") or [])
-        return ('<div class="untrusted" id="trust"><h2>Do not use these values: the model does '
-                f"not describe the images</h2>\n<p>Model: <b>{model}</b>. The fit's residuals "
-                "are far larger than the camera's noise allows, so the values below are biased by "
-                "an amount their intervals do not show (<code>fitmedia fit</code> exited with "
-                f"code 1).</p>\n<ul>{items}</ul>\n<p>Common causes: multiple scattering, which "
-                "the single-scattering model leaves out (dilute further; "
-                "docs/multiple_scattering.md); a wrong geometry or concentration in the spec; a "
-                "wrong noise model. See the residual images below.</p></div>\n" + notes)
+        return ('<div class="untrusted" id="trust"><h2>Do not use these values</h2>\n'
+                f"<p>Model: <b>{model}</b>. The values below are biased or uncertain by an "
+                "amount their intervals do not show (<code>fitmedia fit</code> exited with "
+                f"code 1).</p>\n<ul>{items}</ul>\n<p>{_trust_causes(results)}</p></div>\n" + notes)
     return (f'<div class="trusted" id="trust"><b>Misfit check passed</b> (model <b>{model}</b>): '
             "&chi;&sup2;/pixel at the MAP within what the noise model allows in every channel "
             "and image.</div>\n" + notes)
@@ -474,7 +518,8 @@ def _preview_section(results: dict) -> str:
 
 _DIAG_KEYS = ("converged", "reason", "n_steps", "autocorr_time", "acceptance_fraction", "burn_in",
               "thin", "n_samples", "chi2_per_pixel", "n_pixels", "map_log_posterior",
-              "n_evals_map", "g_constrained", "kappa_s_consistent_with_zero")
+              "n_evals_map", "g_constrained", "kappa_s_consistent_with_zero", "model_used",
+              "multiple_scattering")  # the last two: _ms_section
 _CALIB_KEYS = ("brightness", "brightness_calibrated", "brightness_calibration_rel_sd")
 
 
@@ -587,6 +632,7 @@ def render_report(out_dir: str | Path) -> str:
         _estimates(results, samples),
         _corner_section(results, samples),
         _images_section(results, images),
+        _ms_section(results),
         _preview_section(results),
         _diagnostics_section(results),
         _calibration_section(results, samples),
