@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .errors import InputError
+from .errors import BlackImageError, InputError
 from .inference.result import read_result
 from .util import check_output_dir, write_json
 
@@ -202,6 +202,8 @@ def _run_round(task: RoundTask) -> dict:
             scores = round_trip(geometry, medium_by_name(task.medium), list(task.ml), out,
                                 seed=task.seed, options=task.options, tank_ml=task.tank_ml,
                                 name=task.medium)
+    except BlackImageError as exc:  # a capture with no glow (dense end of ML_RANGE): no score
+        return {**record, "status": "skipped", "error": str(exc)}
     except InputError as exc:
         return {**record, "status": "failed", "error": str(exc)}
     results = read_result(out / "fit" / "results.json")

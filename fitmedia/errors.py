@@ -30,3 +30,9 @@ class SpecError(InputError):
 
 class ImageError(InputError):
     """An image file that cannot be used (missing, broken, wrong size, saturated, NaN)."""
+
+
+class BlackImageError(ImageError):
+    """An image with no glow above the noise in any channel (images/checks.check_lit): a lens
+    cap, the light off, or a liquid so dense that nothing reaches the front wall.  ``validate``
+    skips such a synthetic round instead of failing it (it carries nothing to score)."""

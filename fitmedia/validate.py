@@ -241,8 +241,8 @@ def _table(blocks: dict[str, dict], levels: Sequence[float]) -> str:
 @dataclass
 class ValidationResult:
     """What :func:`validate` found: ``rounds`` (one record per round: ``index``, ``medium``,
-    ``ml``, ``seed``, ``dir``, ``status`` ``"done"``, ``"done earlier"`` or ``"failed"`` with
-    ``error``), ``scores`` (per round, channel and quantity), ``coverage`` (coverage.json, see
+    ``ml``, ``seed``, ``dir``, ``status`` ``"done"``, ``"done earlier"``, ``"failed"`` or ``"skipped"`` (a
+    black capture, nothing to score) with ``error``), ``scores`` (per round, channel and quantity), ``coverage`` (coverage.json, see
     :func:`coverage_summary`), ``table`` (coverage.txt) and the ``files`` written."""
 
     rounds: list[dict]
@@ -310,7 +310,10 @@ def write_coverage(out: Path, rounds: list[dict], scores: list[Score]) -> Valida
     """Write coverage.json, coverage.txt and coverage.png into ``out`` (atomically)."""
     summary = coverage_summary(scores)
     failed = [r for r in rounds if r["status"] == "failed"]
-    lines = [f"{len(rounds)} rounds, {len(failed)} failed; n counts rounds x channels", "",
+    skipped = [r for r in rounds if r["status"] == "skipped"]
+    lines = [f"{len(rounds)} rounds, {len(failed)} failed, {len(skipped)} skipped (a black "
+             "capture: no glow above the noise, nothing to score); n counts rounds x channels",
+             "",
              _table(summary["quantities"], LEVELS) if scores else "(no scores)"]
     for m, blocks in summary["media"].items():
         lines += ["", f"{m}:", _table(blocks, LEVELS)]
@@ -325,7 +328,7 @@ def write_coverage(out: Path, rounds: list[dict], scores: list[Score]) -> Valida
         lines.append(f"  {q:10s} {'pass' if c['passed'] else 'FAIL'}"
                      + ("" if c["coverage_90_ok"] else "  (90 % coverage out of range)")
                      + ("" if c["bias_ok"] else "  (|mean z| too large)"))
-    lines += [f"  round {r['index']} ({r['medium']}): {r['error']}" for r in failed]
+    lines += [f"  round {r['index']} ({r['medium']}): {r['error']}" for r in failed + skipped]
     table = "\n".join(lines) + "\n"
     summary["rounds"] = [{k: v for k, v in r.items() if k != "scores"} for r in rounds]
     files = [out / "coverage.json", out / "coverage.txt", out / "coverage.png"]

@@ -31,6 +31,10 @@ from fitmedia.inference.fit import FitOptions
 
 MEDIA = ["Lowfat Milk", "Espresso"]
 OPTIONS = FitOptions(max_steps=300, n_tau=5, progress=False)  # reduced: see module docstring
+# the rounds' ml drawn where the capture is informative: at the default range's dense end
+# (Lowfat Milk 169 ml at 40 x 30) a single-scattering capture is black and is skipped
+# (test_black_round_is_skipped_not_failed)
+OPTICAL_DEPTH = (0.3, 3.0)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +49,7 @@ def serial_run(tmp_path_factory, geometry):
     """Two rounds (one milk, one espresso) in this process, no Dask."""
     out = tmp_path_factory.mktemp("serial")
     return out, validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial",
-                         options=OPTIONS)
+                         options=OPTIONS, optical_depth=OPTICAL_DEPTH)
 
 
 def _key(scores):
@@ -57,7 +61,7 @@ def test_dask_local_cluster_gives_the_serial_results(serial_run, geometry, tmp_p
     medians, standard deviations and PITs as the serial run, and the same coverage files."""
     _, serial = serial_run
     res = validate(MEDIA, 2, tmp_path, geometry=geometry, seed=7, scheduler=None, n_workers=2,
-                   options=OPTIONS)
+                   options=OPTIONS, optical_depth=OPTICAL_DEPTH)
     assert [r["status"] for r in res.rounds] == ["done", "done"]
     assert len(res.scores) == 2 * 3 * 3  # rounds x channels x (kappa_s, kappa_t, g)
     assert _key(res.scores) == _key(serial.scores)
@@ -93,12 +97,13 @@ def test_rerun_skips_finished_rounds(serial_run, geometry, tmp_path, monkeypatch
         raise AssertionError("a finished round was fitted again")
 
     monkeypatch.setattr("fitmedia.validate.round_trip", no_fit)
-    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS)
+    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS,
+                   optical_depth=OPTICAL_DEPTH)
     assert [r["status"] for r in res.rounds] == ["done earlier", "done"]
     assert _key(res.scores) == _key(first.scores)
     assert (out / "round_0001" / "fit" / "results.json").stat().st_mtime_ns == before
     again = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial",
-                     options=OPTIONS)
+                     options=OPTIONS, optical_depth=OPTICAL_DEPTH)
     assert [r["status"] for r in again.rounds] == ["done earlier", "done earlier"]
 
 
@@ -108,7 +113,7 @@ def test_rerun_with_other_settings_in_the_same_folder_is_refused(serial_run, geo
         validate(MEDIA, 2, out, geometry=geometry, seed=8, scheduler="serial", options=OPTIONS)
     with pytest.raises(InputError, match="--out: .*round_0000.*options.*'max_steps': 300"):
         validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial",
-                 options=replace(OPTIONS, max_steps=301))
+                 options=replace(OPTIONS, max_steps=301), optical_depth=OPTICAL_DEPTH)
 
 
 def test_rounds_scored_without_optical_depth_are_scored_again(serial_run, geometry, tmp_path,
@@ -129,7 +134,8 @@ def test_rounds_scored_without_optical_depth_are_scored_again(serial_run, geomet
         raise AssertionError("a finished round was fitted again")
 
     monkeypatch.setattr("fitmedia.validate.round_trip", no_fit)
-    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS)
+    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS,
+                   optical_depth=OPTICAL_DEPTH)
     assert _key(res.scores) == _key(first.scores)
     assert [s.optical_depth for s in res.scores] == [s.optical_depth for s in first.scores]
     assert all(s.optical_depth and s.regime for s in res.scores)
@@ -377,3 +383,17 @@ def test_optical_depth_regimes():
     assert score(None).regime is None
     summary = coverage_summary([score((0.5 * lo,)), score((1.0,)), score((1.0,)), score(None)])
     assert {r: b["g"]["n"] for r, b in summary["regimes"].items()} == {"thin": 1, "informative": 2}
+
+
+def test_black_round_is_skipped_not_failed(geometry, tmp_path):
+    """A round whose synthetic capture is black in every channel (Regular Milk 240 ml: the
+    single-scattering glow never reaches the front wall) is refused by the image checks
+    before any fitting (errors.BlackImageError); validate records it as skipped with that
+    reason, scores nothing for it, and says so in coverage.txt (not as a failed fit)."""
+    res = validate(["Regular Milk"], 1, tmp_path, ml=[240.0], geometry=geometry, seed=3,
+                   scheduler="serial", options=OPTIONS)
+    (rec,) = res.rounds
+    assert rec["status"] == "skipped" and "a black image" in rec["error"], rec
+    assert res.scores == []
+    text = (tmp_path / "coverage.txt").read_text()
+    assert "0 failed, 1 skipped" in text and "a black image" in text
