@@ -296,8 +296,11 @@ def test_kill_9_of_a_2_worker_fit_then_resume(two_channel_capture, tmp_path, see
 
 
 def _validate_cmd(geo, out, *extra):
+    # Lowfat Milk (Espresso until 2026-12-01): each round still samples a second mode of g (R,
+    # 7 log-posterior units below the MAP), but not in 4 of 6 channels, so a round fits in
+    # 31-37 s of CPU instead of 42-43 s (docs/testing.md, "Test costs")
     return [sys.executable, "-m", "fitmedia.cli", "validate", "--rounds", "2", "--media",
-            "Espresso", "--spec", str(geo), "--out", str(out), "--seed", "3", "--quiet",
+            "Lowfat Milk", "--spec", str(geo), "--out", str(out), "--seed", "3", "--quiet",
             "--max-steps", "100", "--n-tau", "1e6", *extra]
 
 
