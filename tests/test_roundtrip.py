@@ -9,7 +9,10 @@ from fitmedia.medium import medium_by_name
 from fitmedia.validate import coverage_table, grid_verdict, round_trip
 from conftest import make_spec
 
-GRID = [("Lowfat Milk", 8), ("Regular Milk", 240), ("Espresso", 16),
+# Regular Milk at 60 ml (its 2006 dilution), not 240 ml as until 2026-12-02: the 240 ml
+# single-scattering capture at 64 x 48 is black in every channel, which `fit` now refuses
+# (errors.BlackImageError; its scores were prior against a fixed truth, not a calibration test)
+GRID = [("Lowfat Milk", 8), ("Regular Milk", 60), ("Espresso", 16),
         ("White Grapefruit Juice", 160), ("Head & Shoulders Shampoo", 40)]
 
 
@@ -27,7 +30,7 @@ def grid_scores(seed: int, out_dir) -> list:
 
 @pytest.mark.slow
 def test_round_trip_grid_recovers_truth_within_99_percent(tmp_path, seed):
-    """Synthetic round trip: one capture of each medium and dilution of ``GRID`` (8-240 ml in
+    """Synthetic round trip: one capture of each medium and dilution of ``GRID`` (8-160 ml in
     23 l; 45 values: 5 media x 3 channels x kappa_s, kappa_t, g), fitted with the sampler,
     every truth inside its 99 % interval in the grid's simultaneous sense
     (:func:`fitmedia.validate.grid_verdict`): no normal score beyond the Bonferroni limit
