@@ -1,7 +1,7 @@
 # fitmedia: the two set-up commands of the README are `make demo` and `make test`.
 PY ?= python3
 
-.PHONY: install demo test test-fast bench synthetic
+.PHONY: install demo test test-fast test-calibration bench synthetic
 
 install:
 	bash .ci/install.sh
@@ -9,9 +9,13 @@ install:
 demo: install
 	fitmedia demo --out out/demo
 
-# two pytest workers: CI has 2 cores, and most tests use one
+# two pytest workers: CI has 2 cores, and most tests use one; the statistical calibration
+# runs (the round-trip grid, ~10 min) are left to test-calibration (docs/testing.md)
 test: install
-	$(PY) -m pytest -q -n 2 --dist worksteal
+	$(PY) -m pytest -q -n 2 --dist worksteal -m "not calibration"
+
+test-calibration: install
+	$(PY) -m pytest -q -n 2 --dist worksteal -m calibration
 
 test-fast:
 	$(PY) -m pytest -q -n 2 --dist worksteal -m "not slow and not mitsuba"

@@ -28,7 +28,10 @@ def grid_scores(seed: int, out_dir) -> list:
     return scores
 
 
+# ~610 s wall on 2 cores, a third of CI's 30-minute budget: run by `make test-calibration`, not
+# by `make test` (docs/testing.md, "Test costs"); its last result is in the stop's closing note
 @pytest.mark.slow
+@pytest.mark.calibration
 def test_round_trip_grid_recovers_truth_within_99_percent(tmp_path, seed):
     """Synthetic round trip: one capture of each medium and dilution of ``GRID`` (8-160 ml in
     23 l; 45 values: 5 media x 3 channels x kappa_s, kappa_t, g), fitted with the sampler,
