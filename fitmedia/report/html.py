@@ -359,7 +359,7 @@ def _ms_section(results: dict) -> str:
                          for x, e in zip(v, errs))
 
     fields = [
-        ("Model used", lambda i, c: html.escape(str(chans[c].get("model_used", "&mdash;")))),
+        ("Model used", lambda i, c: _cell(chans[c].get("model_used"))),
         ("Share of the glow (per image)", lambda i, c: per_image(i.get("share"), i.get("share_se"))),
         ("Share at the single-scattering MAP", lambda i, c: per_image(
             i.get("share_at_single_scattering_map"))),
