@@ -34,12 +34,12 @@ MAX_NEGATIVE_FRACTION = 0.01
 #: normal tail's share) when fewer of its pixels lie as far above 0: a photograph of the lit
 #: tank has its glow and bulb far above the noise, a negated one has nothing there.
 MIN_NEGATIVE_COUNT, MIN_NEGATIVE_SHARE = 10, 1e-4
-#: A photograph of the lit tank has more than this many usable pixels, and this fraction of
-#: them, above LIT_SIGMAS read-noise sd (its own per-pixel read noise): pure normal noise puts
-#: 2.9e-7 of its pixels there (7 of 24 megapixels), 1e-6 is 3.4 times that share.  No minimum
-#: count: a thin or dark liquid can leave just the bulb's one or two pixels above the noise
-#: (Merlot 200 ml at 24 x 18: 2 of 432 in R), and those are data.
-MIN_LIT_COUNT, MIN_LIT_SHARE, LIT_SIGMAS = 0, 1e-6, 5.0
+#: A photograph of the lit tank has more than this fraction of its usable pixels above
+#: LIT_SIGMAS read-noise sd (its own per-pixel read noise): pure normal noise puts 2.9e-7 of its
+#: pixels there (7 of 24 megapixels), 1e-6 is 3.4 times that share.  No minimum count: a thin
+#: or dark liquid can leave just the bulb's one or two pixels above the noise (Merlot 200 ml at
+#: 24 x 18: 2 of 432 in R), and those are data.
+MIN_LIT_SHARE, LIT_SIGMAS = 1e-6, 5.0
 
 
 def check_values(img: LoadedImage, channels: Sequence[int], names: Sequence[str]) -> None:
@@ -130,7 +130,7 @@ def check_lit(img: LoadedImage, channels: Sequence[int], names: Sequence[str],
         ok = img.valid[..., ci]
         v, rv = img.data[..., ci][ok], np.broadcast_to(read_map, img.data.shape)[..., ci][ok]
         n_lit = int(np.count_nonzero(v > LIT_SIGMAS * np.sqrt(np.maximum(rv, 0.0))))
-        if v.size == 0 or n_lit > max(MIN_LIT_COUNT, MIN_LIT_SHARE * v.size):
+        if v.size == 0 or n_lit > MIN_LIT_SHARE * v.size:
             continue
         if img.n_saturated:
             frames = "every frame" if len(img.exposures) > 1 else "the image"
@@ -141,7 +141,7 @@ def check_lit(img: LoadedImage, channels: Sequence[int], names: Sequence[str],
         black.append((ch, n_lit, v.size))
     if black and len(black) == len(names):
         ch, n_lit, n = black[0]
-        raise BlackImageError(f"{img.source}: channel {ch}: {n_lit} of {n} usable pixels are above "
-                         f"{LIT_SIGMAS:g} read-noise sd, and no channel has more: a black image "
-                         "(lens cap, light off, exposure_s, or a liquid so dense that no glow "
-                         "reaches the front wall: dilute it)")
+        raise BlackImageError(f"{img.source}: channel {ch}: {n_lit} of {n} usable pixels are "
+                              f"above {LIT_SIGMAS:g} read-noise sd, and no channel has more: a "
+                              "black image (lens cap, light off, exposure_s, or a liquid so dense "
+                              "that no glow reaches the front wall: dilute it)")
