@@ -60,16 +60,17 @@ def scaled_spec(out: Path, size: tuple[int, int] | None) -> Path:
 
 
 def values(fit_dir: Path) -> dict:
-    try:
-        res = json.loads((fit_dir / "results.json").read_text())
-    except (OSError, ValueError):
+    """kappa_t, kappa_s, g per channel (posterior median, or the MAP without a sampler), the
+    model used and the trust verdict of the fit in ``fit_dir``; {} when it wrote none."""
+    from fitmedia.inference.result import read_result
+
+    res = read_result(fit_dir / "results.json")
+    if res is None:
         return {}
-    params = res.get("parameters", {})
-    out = {ch: {k: (params.get(k, {}).get(ch) or {}).get("median",
-                                                       (params.get(k, {}).get(ch) or {}).get("map"))
-                for k in ("kappa_t", "kappa_s", "g")} for ch in res.get("channels", [])}
-    out["model_used"] = res.get("model_used")
-    out["trust_ok"] = (res.get("trust") or {}).get("ok")
+    out: dict = {ch: {k: res.value(k, ch) for k in ("kappa_t", "kappa_s", "g")}
+                 for ch in res.channels}
+    out["model_used"] = res.model_used
+    out["trust_ok"] = (res.trust or {}).get("ok")
     return out
 
 
