@@ -41,6 +41,10 @@ SERIAL = "serial"
 _FREE_OPTIONS = ("seed", "workers", "progress", "resume")
 
 
+#: identity fields of a round that older round.json files lack, with the value they had
+_ROUND_DEFAULTS = {"synth_model": "single", "synth_spp": 256}
+
+
 @dataclass(frozen=True)
 class RoundTask:
     """One synthetic round trip: what to synthesise, where, with which seed."""
@@ -54,11 +58,14 @@ class RoundTask:
     tank_ml: float
     out: str
     options: FitOptions
+    synth_model: str = "single"  # how the capture is rendered (synth --model)
+    synth_spp: int = 256  # its paths per pixel (hybrid) or samples per pixel (full)
 
     def identity(self) -> dict:
         """The fields a finished round must share with this task to be reused."""
         return {"medium": self.medium, "ml": list(self.ml), "seed": self.seed,
                 "tank_ml": self.tank_ml, "geometry_sha256": self.geometry_sha256,
+                "synth_model": self.synth_model, "synth_spp": self.synth_spp,
                 "options": {k: v for k, v in asdict(self.options).items()
                             if k not in _FREE_OPTIONS}}
 
@@ -201,7 +208,8 @@ def _run_round(task: RoundTask) -> dict:
             geometry = load_spec(task.geometry, require_images=False)
             scores = round_trip(geometry, medium_by_name(task.medium), list(task.ml), out,
                                 seed=task.seed, options=task.options, tank_ml=task.tank_ml,
-                                name=task.medium)
+                                name=task.medium, synth_model=task.synth_model,
+                                synth_spp=task.synth_spp)
     except BlackImageError as exc:  # a capture with no glow (dense end of ML_RANGE): no score
         return {**record, "status": "skipped", "error": str(exc)}
     except InputError as exc:
@@ -230,7 +238,8 @@ def _finished_round(task: RoundTask) -> dict | None:
     if rec is None or rec.get("status") != "done":
         return None
     mine = json.loads(json.dumps(task.identity()))
-    theirs = {k: rec.get(k) for k in mine}
+    # rounds written before the synthesis model was recorded were synthesised by 'single'
+    theirs = {k: rec.get(k, _ROUND_DEFAULTS.get(k)) for k in mine}
     # an option added to FitOptions after the round ran: it ran with the default
     defaults = asdict(type(task.options)())
     old = theirs["options"] if isinstance(theirs["options"], dict) else {}
@@ -249,6 +258,19 @@ def _finished_round(task: RoundTask) -> dict | None:
 
 def _is_int(x: Any, lowest: int) -> bool:
     return isinstance(x, (int, np.integer)) and not isinstance(x, bool) and x >= lowest
+
+
+def synth_choice(fit_model: str, synth_model: str | None, synth_spp: int | None
+                 ) -> tuple[str, int]:
+    """validate's synthesis model and its paths (or samples) per pixel, defaults filled in
+    (:func:`validate`); a bad value is an InputError naming the option."""
+    model = synth_model or ("single" if fit_model == "single" else "hybrid")
+    if model not in ("single", "hybrid", "full"):
+        raise InputError(f"--synth-model: expected 'single', 'hybrid' or 'full', got {model!r}")
+    spp = synth_spp if synth_spp is not None else (4096 if model == "hybrid" else 256)
+    if not _is_int(spp, 16):
+        raise InputError(f"--synth-spp: expected an integer >= 16, got {spp!r}")
+    return model, int(spp)
 
 
 def _check_validate_args(media: list[str], rounds: int, ml: list[float] | None, seed: int,
@@ -304,7 +326,8 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
              ml: list[float] | None = None, geometry: str | Path | None = None, seed: int = 0,
              scheduler: str | None = None, n_workers: int = 2,
              options: FitOptions | None = None, tank_ml: float = 23000.0,
-             optical_depth: tuple[float, float] | None = None) -> ValidationResult:
+             optical_depth: tuple[float, float] | None = None, synth_model: str | None = None,
+             synth_spp: int | None = None) -> ValidationResult:
     """Synthetic round trips (synth -> fit) spread over ``media``, scored for coverage.
 
     Parameters
@@ -339,6 +362,15 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
         Instead of 8-240 ml, draw each round's ml so that the G channel's optical depth
         light-to-wall (:mod:`fitmedia.regimes`) is log-uniform in ``lo``-``hi``: a capture
         planned for a regime (docs/validation.md).  Not with ``ml``.
+    synth_model : {'single', 'hybrid', 'full'}, optional
+        How each capture is rendered (``fitmedia synth --model``).  Default: ``single`` for a
+        single-scattering fit, ``hybrid`` (analytic single scattering plus fitmedia's own
+        multiple-scattering term, traced with other random numbers than the fit's) for
+        ``options.model`` full or auto: Mitsuba's own render noise at any affordable spp is
+        above the camera's (docs/validation.md, "Full transport").
+    synth_spp : int, optional
+        Paths per pixel of the hybrid term (default 4096) or Mitsuba's samples per pixel
+        (default 256).
 
     Returns
     -------
@@ -350,6 +382,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
 
     options = options or FitOptions()
     names = _check_validate_args(media, rounds, ml, seed, tank_ml, options)
+    synth_model, synth_spp = synth_choice(options.model, synth_model, synth_spp)
     _check_runner(scheduler, n_workers)
     out = check_output_dir(out_dir)  # each round then writes its folders atomically
     geo = Path(geometry) if geometry is not None else DEFAULT_GEOMETRY
@@ -363,7 +396,8 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
         rseed, rml = round_seed_and_ml(seed, i, ml, ranges[names[i % len(names)]])
         task = RoundTask(i, names[i % len(names)], rml, rseed, str(geo.resolve()), sha,
                          float(tank_ml), str(out / f"round_{i:04d}"),
-                         replace(options, seed=rseed, workers=1, progress=False, resume=False))
+                         replace(options, seed=rseed, workers=1, progress=False, resume=False),
+                         synth_model, synth_spp)
         rec = _finished_round(task)
         if rec is None:
             tasks.append(task)

@@ -161,7 +161,7 @@ def _fit_options(a, **kw) -> FitOptions:
     from .inference.fit import FitOptions
 
     return FitOptions(seed=a.seed, max_steps=a.max_steps, n_tau=a.n_tau, progress=not a.quiet,
-                      **kw)
+                      model=a.model, **kw)
 
 
 def _add_runner_args(p) -> None:
@@ -175,6 +175,8 @@ def _add_runner_args(p) -> None:
     p.add_argument("--n-tau", type=_finite, default=DEFAULTS.n_tau,
                    help="chain length in autocorr. times")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--model", choices=["single", "full", "auto"], default=DEFAULTS.model,
+                   help="forward model of every fit (as for fit)")
 
 
 def add_validate_parser(sub) -> None:
@@ -190,6 +192,12 @@ def add_validate_parser(sub) -> None:
     p.add_argument("--ml", type=_finite, nargs="+", default=None,
                    help="ml per image of every round (default: drawn in 8-240 per round)")
     p.add_argument("--tank-ml", type=_finite, default=23000.0)
+    p.add_argument("--synth-model", choices=["single", "hybrid", "full"], default=None,
+                   help="how each capture is rendered (as synth --model); default single for "
+                        "--model single, else hybrid (docs/validation.md)")
+    p.add_argument("--synth-spp", type=_positive_int, default=None,
+                   help="paths per pixel of the hybrid term (default 4096) or Mitsuba's spp "
+                        "(default 256)")
     p.add_argument("--optical-depth", type=_finite, nargs=2, default=None, metavar=("LO", "HI"),
                    help="draw each round's ml so that the G channel's optical depth from the "
                         "light to the front wall is log-uniform in LO-HI (instead of 8-240 ml)")
@@ -203,7 +211,8 @@ def cmd_validate(a) -> int:
 
     res = validate(a.media, a.rounds, a.out, ml=a.ml, geometry=a.spec, seed=a.seed,
                    scheduler=a.scheduler, n_workers=a.workers, options=_fit_options(a),
-                   tank_ml=a.tank_ml, optical_depth=a.optical_depth)
+                   tank_ml=a.tank_ml, optical_depth=a.optical_depth,
+                   synth_model=a.synth_model, synth_spp=a.synth_spp)
     print(res.table, end="")
     print(f"wrote {', '.join(str(f) for f in res.files)}")
     return 0 if res.passed else 1

@@ -106,7 +106,12 @@ def misfit_checks(chans: dict[str, dict], images: Sequence[dict], model: str, *,
 
 #: a full-transport MAP that moves by more than this many posterior sd when the multiple-
 #: scattering term is traced with other random numbers has intervals too narrow to trust
+#: (results without the term's jackknife error, ``term_sd``, in their intervals)
 SEED_SHIFT_SD = 1.0
+#: with the jackknife error in the intervals, ``seed_shift_sd`` is the move in units of the sd
+#: the jackknife gives it; beyond this many, the jackknife (and the intervals) understate the
+#: term's error: a 3-sigma event for one coordinate, ~0.5 % for the larger of two
+SEED_SHIFT_Z = 3.0
 
 
 def transport_reasons(chans: dict[str, dict]) -> list[str]:
@@ -124,11 +129,18 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"moved by {ms['moves_sd'][-1]:.2g} posterior sd; the values of channel {ch} are "
                 "uncertain by more than their intervals show")
         shift = ms.get("seed_shift_sd")
-        if shift is not None and not shift <= SEED_SHIFT_SD:
+        if shift is None:
+            continue
+        if ms.get("term_sd") is None and not shift <= SEED_SHIFT_SD:
             reasons.append(
                 f"the multiple-scattering term's own Monte Carlo error moves the values of channel "
                 f"{ch} by {shift:.2g} posterior sd (the term traced again with other random "
                 "numbers); their intervals do not include that error")
+        elif ms.get("term_sd") is not None and not shift <= SEED_SHIFT_Z:
+            reasons.append(
+                f"the multiple-scattering term traced again with other random numbers moved the "
+                f"values of channel {ch} by {shift:.2g} times the sd its stated Monte Carlo error "
+                "gives such a move; the intervals understate that error")
     return reasons
 
 

@@ -78,14 +78,16 @@ class Score:
 
 def round_trip(geometry: Spec, medium: Medium, ml: list[float], out_dir: str | Path, *,
                seed: int = 0, options: FitOptions | None = None, tank_ml: float = 23000.0,
-               name: str = "") -> list[Score]:
-    """Synthesise ``medium`` at ``ml`` (ml in ``tank_ml``) with ``geometry``, fit it, score it."""
+               name: str = "", synth_model: str = "single", synth_spp: int = 256
+               ) -> list[Score]:
+    """Synthesise ``medium`` at ``ml`` (ml in ``tank_ml``) with ``geometry`` (rendered by
+    ``synth_model`` at ``synth_spp``, as ``fitmedia synth``), fit it, score it."""
     from .pipeline import fit
     from .synth import synthesize
 
     out = Path(out_dir)
     spec_path = synthesize(geometry, out / "capture", medium, list(ml), tank_ml=tank_ml, seed=seed,
-                           medium_name=name or medium.name)
+                           medium_name=name or medium.name, model=synth_model, spp=synth_spp)
     opts = options or FitOptions(seed=seed, progress=False)
     fit(spec_path, out / "fit", opts, report=False)
     return score_fit(out / "fit", medium, ml, name=name or medium.name, spec=spec_path)

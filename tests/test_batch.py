@@ -116,6 +116,27 @@ def test_rerun_with_other_settings_in_the_same_folder_is_refused(serial_run, geo
                  options=replace(OPTIONS, max_steps=301), optical_depth=OPTICAL_DEPTH)
 
 
+def test_rounds_from_before_the_synthesis_model_was_recorded(serial_run, geometry, tmp_path):
+    """A round.json without ``synth_model``/``synth_spp`` (written before validate could
+    render with the full-transport term) was synthesised by 'single' at the default spp: a
+    rerun with those settings reuses it, and one that asks for hybrid captures is refused,
+    naming the field."""
+    src, _ = serial_run
+    out = tmp_path / "old"
+    shutil.copytree(src, out)
+    for rnd in ("round_0000", "round_0001"):
+        path = out / rnd / "round.json"
+        rec = json.loads(path.read_text())
+        assert rec.pop("synth_model") == "single" and rec.pop("synth_spp") == 256
+        path.write_text(json.dumps(rec))
+    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS,
+                   optical_depth=OPTICAL_DEPTH)
+    assert [r["status"] for r in res.rounds] == ["done earlier", "done earlier"]
+    with pytest.raises(InputError, match="--out: .*synth_model 'single' \\(now 'hybrid'\\)"):
+        validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS,
+                 optical_depth=OPTICAL_DEPTH, synth_model="hybrid")
+
+
 def test_rounds_scored_without_optical_depth_are_scored_again(serial_run, geometry, tmp_path,
                                                                monkeypatch):
     """A finished round whose round.json predates the optical depth (no ``optical_depth`` in
@@ -190,6 +211,8 @@ def test_optical_depth_design_draws_ml_for_the_regime():
     ({"optical_depth": (2.0, 1.0)}, "--optical-depth: got 2 1"),
     ({"optical_depth": (0.1, 1.0), "ml": [16.0]}, "--optical-depth: not with --ml"),
     ({"optical_depth": (0.1, 1e5)}, "--optical-depth: 0.1-100000 needs"),
+    ({"synth_model": "hybird"}, "--synth-model: expected 'single', 'hybrid' or 'full'"),
+    ({"synth_spp": 3}, "--synth-spp: expected an integer >= 16, got 3"),
 ])
 def test_bad_validate_input_is_an_input_error(kwargs, words, geometry, tmp_path):
     args = {"media": MEDIA, "rounds": 1, "out_dir": tmp_path, "geometry": geometry,

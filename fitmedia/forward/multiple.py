@@ -237,6 +237,9 @@ class FullTransport:
         self.shape, self.support = self.single.shape, self.single.support
         self.seed, self.step = int(seed), float(step)
         self._local: list | None = None
+        #: index of a batch of paths the term leaves out (the jackknife of
+        #: inference/full.py: term_jackknife), or None for all of them
+        self.leave_out: int | None = None
 
     def refresh(self, kappa_a, kappa_s, g, brightness=None) -> None:
         """Rebuild the local model at these parameters (arrays of shape (C,)); 3 traces per
@@ -257,9 +260,11 @@ class FullTransport:
             n_ord = max(r.shape[1] for r in runs)
             runs = [np.pad(r, ((0, 0), (0, n_ord - r.shape[1]), (0, 0))) for r in runs]
             base = runs[0]
+            # per batch: the finite differences of each batch (the same paths), so that a
+            # batch's derivatives leave with it (leave_out) and their noise is in the variance
             local.append({"kt": kt, "eta": eta, "batches": base,
-                          "d_kt": (runs[1] - base).mean(axis=0) / self.step,
-                          "d_g": (runs[2] - base).mean(axis=0) / self.step})
+                          "d_kt": (runs[1] - base) / self.step,
+                          "d_g": (runs[2] - base) / self.step})
         self._local = local
 
     def needs_refresh(self, kappa_a, kappa_s, g, tol: float = 0.1) -> bool:
@@ -280,7 +285,7 @@ class FullTransport:
     def ms_part(self, kappa_a, kappa_s, g, brightness) -> tuple[np.ndarray, np.ndarray]:
         """The multiple-scattering image and its Monte Carlo variance, both (H, W, C), from
         the local model (the variance is that of the refresh point's estimate at this
-        albedo; the finite differences' own noise is not in it)."""
+        albedo, with the noise of the finite differences, which each batch has of its own)."""
         c = len(self.channels)
         ka, ks, gg, br = check_render_args(c, kappa_a, kappa_s, g, brightness)
         if self._local is None:
@@ -291,10 +296,13 @@ class FullTransport:
                 continue
             kt = ka[k] + ks[k]
             dk, dg = math.log(kt / loc["kt"]), math.atanh(gg[k]) - loc["eta"]
-            shift = dk * loc["d_kt"] + dg * loc["d_g"]
-            pw = (ks[k] / kt) ** np.arange(shift.shape[0])
+            pw = (ks[k] / kt) ** np.arange(loc["batches"].shape[1])
             pw[0] = 0.0
-            per = self.ms.smoothed(np.tensordot(loc["batches"] + shift[None], pw, axes=([1], [0])))
+            per = sum(c * np.tensordot(loc[name], pw, axes=([1], [0]))
+                      for c, name in ((1.0, "batches"), (dk, "d_kt"), (dg, "d_g")))
+            if self.leave_out is not None:
+                per = np.delete(per, self.leave_out, axis=0)
+            per = self.ms.smoothed(per)
             mean = np.clip(per.mean(axis=0), 0.0, None)
             err = per.std(axis=0, ddof=1) / math.sqrt(per.shape[0])
             img[..., k] = (self.ms.upsample(mean) * br[k]).reshape(self.shape)

@@ -276,7 +276,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
         "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
         "delta_log_posterior": float(alt.log_posterior - res.log_posterior)}
     out = {"channel": channel, "names": space.names, "x_map": res.x, "map_logp": res.log_posterior,
-           "n_evals": res.n_evals, "laplace_cov": res.cov,
+           "n_evals": res.n_evals, "laplace_cov": _with_term_error(res.cov, transport),
            "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
            "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
            "chi2_images": problem.chi2_images(res.x),
@@ -285,7 +285,19 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     if options.mcmc:
         out.update(_sample_channel(problem, space, res, alt, other_mode, options, rng,
                                    checkpoint, [seed, CHANNELS.index(channel)], channel, identity))
+        if transport.get("ms_term_cov") is not None:
+            from .full import convolve_samples
+
+            out["samples"] = convolve_samples(out["samples"], transport["ms_term_cov"],
+                                              np.random.default_rng([seed, CHANNELS.index(channel), 6]))
     return out
+
+
+def _with_term_error(cov: np.ndarray | None, transport: dict) -> np.ndarray | None:
+    """The Laplace covariance plus the full-transport term's realisation error (its jackknife
+    covariance, inference/full.py: term_jackknife), where the fit has one."""
+    term = transport.get("ms_term_cov")
+    return cov if cov is None or term is None else cov + term
 
 
 def channel_problem(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np.ndarray],
@@ -420,7 +432,8 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     scattering share there, and (full, or auto above ``AUTO_SHARE``) the full-transport MAP
     and how far another realisation of the term moves it (inference/full.py).  Returns the
     MAP and the fields of ``fit_channel``'s result that say what was used."""
-    from .full import AUTO_SHARE, ms_images, ms_share, refine_map, seed_shift, use_full_transport
+    from .full import (AUTO_SHARE, ms_images, ms_share, refine_map, seed_shift, term_jackknife,
+                       use_full_transport)
 
     # the term's random numbers: streams of their own, so the chains' draws do not move
     ms_seed, check_seed = (int(s) for s in np.random.default_rng(
@@ -433,10 +446,12 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     use_full_transport(problem, spec, channel, seed=ms_seed)
     res, info = refine_map(problem, space, res)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
+    term_cov = term_jackknife(problem, res)
     out.update(model_used="full", ms_share=share, ms_share_se=share_se,
                full_refreshes=info.refreshes, full_moves_sd=info.moves_sd,
-               full_converged=info.converged,
-               ms_seed_shift_sd=seed_shift(problem, space, res, spec, channel, seed=check_seed),
+               full_converged=info.converged, ms_term_cov=term_cov,
+               ms_seed_shift_sd=seed_shift(problem, space, res, spec, channel, seed=check_seed,
+                                           term_cov=term_cov),
                ms_images=ms_images(problem, res.x))
     return res, out
 

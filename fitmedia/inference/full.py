@@ -43,6 +43,8 @@ TRUST_STEP = 0.25
 #: ``--model auto`` switches to full transport above this multiple-scattering share of the
 #: glow (sum over the pixels that do not see the bulb); docs/multiple_scattering.md
 AUTO_SHARE = 0.02
+#: the jackknife's finite-difference step, in posterior sd of each coordinate
+JACKKNIFE_STEP_SD = 0.1
 #: the term is traced on a grid of about this many sample pixels (camera pixels binned)
 TRACE_WIDTH, TRACE_HEIGHT = 48, 36
 
@@ -116,6 +118,51 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
     return final, info
 
 
+def term_jackknife(problem: ChannelProblem, res: MapResult) -> np.ndarray | None:
+    """Covariance (P, P), in the sampler's coordinates, of the MAP's error that the
+    multiple-scattering term's own Monte Carlo realisation causes: the delete-one jackknife
+    over the term's independent batches of paths.  Each leave-one-out MAP is one Newton step
+    from ``res`` (its Laplace covariance times the gradient of the log posterior with that
+    batch left out, central differences at a tenth of a posterior sd), so the whole costs
+    ``2 P`` posterior evaluations per batch and no new trace.  None without a Monte Carlo
+    model or a Laplace covariance."""
+    models = [o.model for o in problem.obs if hasattr(o.model, "leave_out")]
+    if not models or res.cov is None:
+        return None
+    lo, hi = problem.space.lower, problem.space.upper
+    step = JACKKNIFE_STEP_SD * np.sqrt(np.diag(res.cov))
+    deltas = []
+    try:
+        for i in range(min(m.ms.batches for m in models)):
+            for m in models:
+                m.leave_out = i
+            grad = np.zeros(len(res.x))
+            for j in range(len(res.x)):
+                up, down = res.x.copy(), res.x.copy()
+                up[j], down[j] = min(hi[j], res.x[j] + step[j]), max(lo[j], res.x[j] - step[j])
+                if up[j] > down[j]:
+                    grad[j] = (problem.log_posterior(up) - problem.log_posterior(down)) / (up[j] - down[j])
+            deltas.append(res.cov @ grad)
+    finally:
+        for m in models:
+            m.leave_out = None
+    d = np.array(deltas)
+    if not np.all(np.isfinite(d)):
+        return None
+    d -= d.mean(axis=0)
+    return (len(d) - 1) / len(d) * d.T @ d
+
+
+def convolve_samples(samples: np.ndarray, cov: np.ndarray, rng: np.random.Generator
+                     ) -> np.ndarray:
+    """Posterior samples (N, P) with the term's realisation error added: each moved by an
+    independent N(0, ``cov``) draw (the camera's noise and the term's Monte Carlo error are
+    independent, so the posterior of the values is the convolution of the two)."""
+    val, vec = np.linalg.eigh(0.5 * (cov + cov.T))
+    root = vec * np.sqrt(np.clip(val, 0.0, None))
+    return samples + rng.standard_normal(samples.shape) @ root.T
+
+
 def ms_share(problem: ChannelProblem, u: np.ndarray, spec, channel: str, *, seed: int
              ) -> tuple[list[float], list[float]]:
     """Per observation: the multiple-scattering share of the glow at parameters ``u`` and its
@@ -140,12 +187,14 @@ def ms_share(problem: ChannelProblem, u: np.ndarray, spec, channel: str, *, seed
 
 
 def seed_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult, spec,
-               channel: str, *, seed: int) -> float:
+               channel: str, *, seed: int, term_cov: np.ndarray | None = None) -> float:
     """How far the full-transport MAP moves when the multiple-scattering term is traced with
-    other random numbers (``seed``), in posterior sd of log kappa_t and atanh g.  The
-    intervals hold the camera's noise and the term's per-pixel variance but not the term's
-    own realisation, which is shared by every pixel; a shift above 1 sd means they are too
-    narrow.  The problem keeps its original term afterwards."""
+    other random numbers (``seed``): the largest move of log kappa_t and atanh g in units of
+    the sd such a move has if the term's jackknife covariance ``term_cov`` is right
+    (sqrt(2 C_jj), the two realisations independent, plus the refreshes' own tolerance,
+    ``MOVE_TOL_SD`` posterior sd at each end).  Without ``term_cov``: in posterior sd.  A
+    large value means the jackknife understates the term's error, and with it the
+    intervals.  The problem keeps its original term afterwards."""
     models = [o.model for o in problem.obs]
     saved = list(problem._model_var)
     for o in problem.obs:
@@ -156,7 +205,11 @@ def seed_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult, s
         o.model = m
     problem._model_var = saved
     problem.adapt(res.x)
-    return _move_in_sd(problem, space, res.x, other)
+    if term_cov is None or res.cov is None:
+        return _move_in_sd(problem, space, res.x, other)
+    idx = [0, 2]
+    sd = np.sqrt(2.0 * np.diag(term_cov)[idx] + 2.0 * MOVE_TOL_SD**2 * np.diag(res.cov)[idx])
+    return float(np.max(np.abs(other.x[idx] - res.x[idx]) / sd))
 
 
 def ms_images(problem: ChannelProblem, u: np.ndarray) -> list[np.ndarray] | None:

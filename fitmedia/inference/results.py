@@ -87,12 +87,23 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
             "share": f.get("ms_share"), "share_se": f.get("ms_share_se"),
             "share_at_single_scattering_map": f.get("ms_share_single_map"),
             **({"refreshes": f["full_refreshes"], "converged": f["full_converged"],
-                "moves_sd": f["full_moves_sd"], "seed_shift_sd": f["ms_seed_shift_sd"]}
+                "moves_sd": f["full_moves_sd"], "seed_shift_sd": f["ms_seed_shift_sd"],
+                "term_sd": _term_sd(f)}
                if f["model_used"] == "full" else {})}
     params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys)
     info.update(kappa_s_reduced_width_ratio=ratio, kappa_s_g_separable=separable(
         ratio, info.get("kappa_s_consistent_with_zero")))
     return info
+
+
+def _term_sd(f: dict) -> dict | None:
+    """The sd of the values' error from the multiple-scattering term's own Monte Carlo
+    realisation (its jackknife, inference/full.py), per coordinate of the sampler (log
+    kappa_t, logit albedo, atanh g, ...); None where it could not be measured."""
+    cov = f.get("ms_term_cov")
+    if cov is None:
+        return None
+    return {n: float(np.sqrt(max(v, 0.0))) for n, v in zip(f["names"], np.diag(cov))}
 
 
 def _sampler_info(f: dict, phys: dict, p: dict) -> dict:

@@ -1,0 +1,124 @@
+"""Does the full-transport posterior cover the truth when the multiple-scattering term is
+traced with other random numbers?  (docs/inference.md, "Full transport".)
+
+A capture rendered with fitmedia's own term at many paths (``synth --model hybrid``, so
+its render noise is far below the fit's term error) is fitted with the local model of
+the term built AT THE TRUTH from each of several seeds, the MAP polished from the truth
+(no further refresh): the spread of these MAPs is the term's realisation alone.  Printed
+per seed: the errors of kappa_t and g, their z = error / Laplace sd (log kappa_t,
+atanh g), and z = error / sqrt(Laplace variance + the term's jackknife variance)
+(``inference.full.term_jackknife``).  A calibrated covariance gives z with rms near 1.
+
+Run: python docs/studies/ms_shared_error.py CAPTURE_DIR [N_PATHS] [SEEDS]
+(CAPTURE_DIR: a one-image, one-channel capture with truth.json; ~1 CPU-minute per seed)
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from fitmedia.forward.multiple import FullTransport
+from fitmedia.inference import fit as F
+from fitmedia.inference.full import term_jackknife
+from fitmedia.inference.likelihood import ChannelProblem, Observation
+from fitmedia.inference.optimize import find_map
+from fitmedia.inference.params import ChannelParams, ParameterSpace
+from fitmedia.spec import load_spec
+
+
+def problem(cap: Path):
+    spec = load_spec(cap / "capture.yaml")
+    prep = F.prepare(spec)
+    ch = spec.channels[0]
+    ci = F.CHANNELS.index(ch)
+    im = prep.images[0]
+    gmap, rmap = prep.noise_maps["images[0]"]
+    model = F._model(spec, 0, ch, F.FitOptions(mcmc=False, progress=False))
+    obs = [Observation(model, im.data[..., ci], im.valid[..., ci] & model.support,
+                       spec.images[0].concentration, gmap[..., ci], rmap[..., ci])]
+    b = prep.brightness[ch]
+    space = ParameterSpace(free_brightness=True, brightness_guess=b,
+                           brightness_rel_sd=prep.brightness_rel_sd[ch], background_sd=None,
+                           priors=spec.priors)
+    prob = ChannelProblem(obs, space, None, prep.noise[ch], water_kappa_a=spec.water_kappa_a[ci])
+    return spec, ch, b, space, prob
+
+
+def _variant(prob, o, spec, t, ch, b):
+    """STUDY_VAR=zero: no term variance in the likelihood; =smooth: the term's relative
+    variance pooled over the glow times the square of the term smoothed (sigma 2 px), so that
+    a pixel's weight does not follow its own realisation."""
+    import os
+
+    from scipy import ndimage
+
+    mode = os.environ.get("STUDY_VAR", "")
+    if not mode:
+        return
+    if mode == "noderiv":  # the term held at its value at the truth
+        for loc in o.model._local:
+            if loc is not None:
+                loc["d_kt"] = 0 * loc["d_kt"]
+                loc["d_g"] = 0 * loc["d_g"]
+        return
+    if mode == "zero":
+        prob._model_var[0] = 0.0
+        return
+    ci = F.CHANNELS.index(ch)
+    c = spec.images[0].concentration
+    img, var = o.model.ms_part([c * t["kappa_a"][ch] + spec.water_kappa_a[ci]],
+                               [c * t["kappa_s"][ch]], [t["g"][ch]], [b])
+    m, v = img[..., 0], var[..., 0]
+    glow = m > 1e-2 * m.max()
+    rel = np.median(v[glow] / m[glow] ** 2)
+    ms = ndimage.gaussian_filter(m, 2.0)
+    prob._model_var[0] = (rel * ms**2 * o.model.ms.bin**2).ravel()[o.flat_idx]
+
+
+def main():
+    cap = Path(sys.argv[1])
+    n_paths = int(sys.argv[2]) if len(sys.argv) > 2 else 256
+    seeds = range(11, 11 + (int(sys.argv[3]) if len(sys.argv) > 3 else 8))
+    spec, ch, b, space, prob = problem(cap)
+    t = json.loads((cap / "truth.json").read_text())["undiluted"]
+    xt = space.to_vector(ChannelParams(t["kappa_t"][ch], t["albedo"][ch], t["g"][ch], b))
+    prob.adapt(xt)
+    o = prob.obs[0]
+    single = getattr(o.model, "single", o.model)
+    rows = []
+    for seed in seeds:
+        o.model = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=1, n_paths=n_paths,
+                                single=single, step=float(os.environ.get("STUDY_STEP", 0.05)))
+        o.model.ms.smooth = float(os.environ.get("STUDY_SMOOTH", o.model.ms.smooth))
+        prob.refresh_models(xt)
+        prob.adapt(xt)
+        _variant(prob, o, spec, t, ch, b)
+        c2, n = prob.chi2(xt)
+        r = find_map(prob.log_posterior, xt, space.lower, space.upper, global_evals=0)
+        jk = term_jackknife(prob, r)
+
+        lap = np.diag(r.cov)[[0, 2]]
+        tot = lap + np.diag(jk)[[0, 2]]
+        e = r.x[[0, 2]] - xt[[0, 2]]
+        p = space.to_params(r.x)
+        rows.append((p.kappa_t / t["kappa_t"][ch] - 1, p.g - t["g"][ch], *(e / np.sqrt(lap)),
+                     *(e / np.sqrt(tot)), *np.sqrt(np.diag(jk)[[0, 2]] / lap), c2 / n))
+        print(f"seed {seed}: kappa_t {rows[-1][0]:+.3f} g {rows[-1][1]:+.3f}; z Laplace "
+              f"{rows[-1][2]:+.2f} {rows[-1][3]:+.2f}; z with the jackknife {rows[-1][4]:+.2f} "
+              f"{rows[-1][5]:+.2f}; jackknife sd / Laplace sd {rows[-1][6]:.2f} {rows[-1][7]:.2f}; "
+              f"chi2/pixel at the truth {rows[-1][8]:.2f}", flush=True)
+    R = np.array(rows)
+    rms = np.sqrt(np.mean(R[:, 2:6] ** 2, axis=0))
+    print(f"{n_paths} paths, {len(R)} seeds: kappa_t error mean {R[:, 0].mean():+.4f} sd "
+          f"{R[:, 0].std(ddof=1):.4f}; g error mean {R[:, 1].mean():+.4f} sd "
+          f"{R[:, 1].std(ddof=1):.4f}; z rms (log kappa_t, atanh g): Laplace {rms[0]:.2f} "
+          f"{rms[1]:.2f}, with the jackknife {rms[2]:.2f} {rms[3]:.2f}; chi2/pixel at the truth "
+          f"{R[:, 8].min():.2f}-{R[:, 8].max():.2f}")
+
+
+if __name__ == "__main__":
+    main()
