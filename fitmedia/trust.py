@@ -112,6 +112,9 @@ SEED_SHIFT_SD = 1.0
 #: the jackknife gives it; beyond this many, the jackknife (and the intervals) understate the
 #: term's error: a 3-sigma event for one coordinate, ~0.5 % for the larger of two
 SEED_SHIFT_Z = 3.0
+#: a second full-transport fit started beyond the MAP (inference/full.py: restart_shift) that
+#: ends more than this many sd (Laplace plus the term's jackknife) away: two fixed points
+RESTART_SD = 3.0
 
 
 def transport_reasons(chans: dict[str, dict]) -> list[str]:
@@ -128,6 +131,15 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"{ms['refreshes']} refreshes of the multiple-scattering term the best fit still "
                 f"moved by {ms['moves_sd'][-1]:.2g} posterior sd; the values of channel {ch} are "
                 "uncertain by more than their intervals show")
+        restart = ms.get("restart_shift_sd")
+        if restart is not None and not restart <= RESTART_SD:
+            other = ms.get("restart_values") or {}
+            reasons.append(
+                f"a second full-transport fit of channel {ch}, started further along the "
+                f"direction in which multiple scattering moves the values, ended {restart:.2g} sd "
+                f"away (kappa_t {other.get('kappa_t', float('nan')):.4g}, g "
+                f"{other.get('g', float('nan')):.3g}): the images do not decide between the two, "
+                f"and the values of channel {ch} are not determined to within their intervals")
         shift = ms.get("seed_shift_sd")
         if shift is None:
             continue

@@ -21,7 +21,7 @@ import pytest
 from conftest import make_spec
 from fitmedia.cli import main
 from fitmedia.forward.single import SingleScattering
-from fitmedia.inference.full import AUTO_SHARE, MOVE_TOL_SD, refine_map
+from fitmedia.inference.full import AUTO_SHARE, MOVE_TOL_SD, refine_map, restart_shift
 from fitmedia.inference.likelihood import ChannelProblem, Observation
 from fitmedia.inference.optimize import find_map
 from fitmedia.inference.params import ChannelParams, ParameterSpace
@@ -85,6 +85,28 @@ def test_refresh_loop_recovers_a_stub_full_transport_capture(rng):
     assert stub.refreshes == info.refreshes >= 2
     for j in (0, 2):
         assert abs(full.x[j] - truth[j]) < 4 * _sd(full, j), (j, full.x, truth)
+    # a second fit started beyond the MAP (restart_shift) comes back to it: one fixed point
+    shift, other = restart_shift(problem, space, full, res.x, None)
+    assert shift < 1.0, (shift, other, full.x)
+
+
+def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understated():
+    """trust.transport_reasons in plain words: a restart that ended beyond RESTART_SD names the
+    other values; a seed shift beyond SEED_SHIFT_Z (with the jackknife's term_sd present) says
+    the intervals understate the term's error; within both bounds nothing is said."""
+    from fitmedia.trust import RESTART_SD, SEED_SHIFT_Z, transport_reasons
+
+    base = {"refreshes": 3, "converged": True, "moves_sd": [2.0, 0.05],
+            "term_sd": {"log_kappa_t": 0.01}, "seed_shift_sd": 0.5, "restart_shift_sd": 0.4,
+            "restart_values": {"kappa_t": 14.72, "g": 0.887}}
+    assert transport_reasons({"G": {"multiple_scattering": base}}) == []
+    far = {**base, "restart_shift_sd": RESTART_SD + 4.3}
+    (reason,) = transport_reasons({"G": {"multiple_scattering": far}})
+    assert "second full-transport fit of channel G" in reason and "14.72" in reason \
+        and "0.887" in reason and "7.3 sd" in reason
+    moved = {**base, "seed_shift_sd": SEED_SHIFT_Z + 0.8}
+    (reason,) = transport_reasons({"B": {"multiple_scattering": moved}})
+    assert "channel B by 3.8 times" in reason and "understate" in reason
 
 
 def _fit(spec: Path, out: Path, *extra: str) -> tuple[int, dict]:

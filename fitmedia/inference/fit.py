@@ -432,8 +432,8 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     scattering share there, and (full, or auto above ``AUTO_SHARE``) the full-transport MAP
     and how far another realisation of the term moves it (inference/full.py).  Returns the
     MAP and the fields of ``fit_channel``'s result that say what was used."""
-    from .full import (AUTO_SHARE, ms_images, ms_share, refine_map, seed_shift, term_jackknife,
-                       use_full_transport)
+    from .full import (AUTO_SHARE, ms_images, ms_share, refine_map, restart_shift, seed_shift,
+                       term_jackknife, use_full_transport)
 
     # the term's random numbers: streams of their own, so the chains' draws do not move
     ms_seed, check_seed = (int(s) for s in np.random.default_rng(
@@ -444,12 +444,17 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
         out.update(ms_share=share, ms_share_se=share_se)
         return res, out
     use_full_transport(problem, spec, channel, seed=ms_seed)
+    single_x = res.x
     res, info = refine_map(problem, space, res)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
     term_cov = term_jackknife(problem, res)
+    restart_sd, restart_x = restart_shift(problem, space, res, single_x, term_cov)
+    other = space.to_params(restart_x)
     out.update(model_used="full", ms_share=share, ms_share_se=share_se,
                full_refreshes=info.refreshes, full_moves_sd=info.moves_sd,
                full_converged=info.converged, ms_term_cov=term_cov,
+               ms_restart_shift_sd=restart_sd,
+               ms_restart_values={"kappa_t": float(other.kappa_t), "g": float(other.g)},
                ms_seed_shift_sd=seed_shift(problem, space, res, spec, channel, seed=check_seed,
                                            term_cov=term_cov),
                ms_images=ms_images(problem, res.x))

@@ -43,6 +43,10 @@ TRUST_STEP = 0.25
 #: ``--model auto`` switches to full transport above this multiple-scattering share of the
 #: glow (sum over the pixels that do not see the bulb); docs/multiple_scattering.md
 AUTO_SHARE = 0.02
+#: the restart check (restart_shift): its start is at most this far beyond the MAP in log
+#: kappa_t and atanh g, and it refreshes the term at most this many times
+RESTART_REACH = 0.5
+RESTART_REFRESHES = 4
 #: the jackknife's finite-difference step, in posterior sd of each coordinate
 JACKKNIFE_STEP_SD = 0.1
 #: the term is traced on a grid of about this many sample pixels (camera pixels binned)
@@ -70,12 +74,13 @@ def use_full_transport(problem: ChannelProblem, spec, channel: str, *, seed: int
 
 
 def _move_in_sd(problem: ChannelProblem, space: ParameterSpace, old: np.ndarray,
-                new: MapResult) -> float:
+                new: MapResult, to: np.ndarray | None = None) -> float:
     """Largest move of log kappa_t and atanh g (the local model's coordinates) between two
-    MAPs, in units of their posterior sd at the new one: the Laplace sd, or where the full
-    Laplace covariance is not positive definite (the albedo on its plateau), the sd of the
-    two with the other parameters held at the MAP."""
+    MAPs (``old`` and ``new``, or ``to`` where given), in units of the posterior sd at ``new``:
+    the Laplace sd, or where the full Laplace covariance is not positive definite (the albedo
+    on its plateau), the sd of the two with the other parameters held at the MAP."""
     idx = [0, 2]
+    far = new.x if to is None else to
     if new.cov is not None:
         sd = np.sqrt(np.diag(new.cov)[idx])
     else:
@@ -87,7 +92,7 @@ def _move_in_sd(problem: ChannelProblem, space: ParameterSpace, old: np.ndarray,
         if cov is None:
             return float("inf")
         sd = np.sqrt(np.diag(cov))
-    return float(np.max(np.abs(new.x[idx] - old[idx]) / sd))
+    return float(np.max(np.abs(far[idx] - old[idx]) / sd))
 
 
 def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult, *,
@@ -210,6 +215,31 @@ def seed_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult, s
     idx = [0, 2]
     sd = np.sqrt(2.0 * np.diag(term_cov)[idx] + 2.0 * MOVE_TOL_SD**2 * np.diag(res.cov)[idx])
     return float(np.max(np.abs(other.x[idx] - res.x[idx]) / sd))
+
+
+def restart_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult,
+                  single_x: np.ndarray, term_cov: np.ndarray | None) -> tuple[float, np.ndarray]:
+    """A second full-transport fit of the same images and term, started beyond the MAP on
+    the far side from the single-scattering MAP ``single_x`` (as far again along log kappa_t
+    and atanh g, the direction in which multiple scattering moved the values): the largest
+    distance between the two fits in log kappa_t and atanh g, in units of the values' sd
+    (Laplace plus ``term_cov``), and the second fit's parameters.  The refreshes stop at
+    fixed points of the local model; where the images hardly distinguish points along the
+    kappa_t-g ridge, the term's noise makes more than one, and the two fits end apart.
+    The problem's local model is rebuilt at ``res`` afterwards."""
+    idx = [0, 2]
+    start = res.x.copy()
+    start[idx] = np.clip(res.x[idx] + np.clip(res.x[idx] - single_x[idx], -RESTART_REACH,
+                                              RESTART_REACH),
+                         space.lower[idx], space.upper[idx])
+    first = MapResult(start, problem.log_posterior(start), 0, None)
+    other, _ = refine_map(problem, space, first, max_refresh=RESTART_REFRESHES)
+    problem.refresh_models(res.x)
+    problem.adapt(res.x)
+    if res.cov is None or term_cov is None:  # in posterior sd (the albedo on its plateau)
+        return _move_in_sd(problem, space, res.x, res, other.x), other.x
+    sd = np.sqrt(np.diag(res.cov + term_cov)[idx])
+    return float(np.max(np.abs(other.x[idx] - res.x[idx]) / sd)), other.x
 
 
 def ms_images(problem: ChannelProblem, u: np.ndarray) -> list[np.ndarray] | None:
