@@ -366,8 +366,12 @@ def _ms_section(results: dict) -> str:
         ("Refreshes of the term", lambda i, c: _cell(i.get("refreshes"))),
         ("Refreshes settled", lambda i, c: _cell(i.get("converged"))),
         ("Last move [posterior sd]", lambda i, c: _cell(_num((i.get("moves_sd") or [None])[-1]), 3)),
-        ("Move with other random numbers [posterior sd]",
-         lambda i, c: _cell(_num(i.get("seed_shift_sd")), 3)),
+        ("Move with other random numbers", lambda i, c: _cell(_num(i.get("seed_shift_sd")), 3)),
+        ("Term's error: sd of log &kappa;<sub>t</sub>, atanh g", lambda i, c: _term_sd_cell(
+            i.get("term_sd"))),
+        ("Second fit from beyond the MAP: distance [sd]",
+         lambda i, c: _cell(_num(i.get("restart_shift_sd")), 3)),
+        ("Second fit: &kappa;<sub>t</sub>, g", lambda i, c: _restart_cell(i.get("restart_values"))),
     ]
     rows = [[label] + [get(info, c) for c, info in ms.items()] for label, get in fields]
     rows = [r for r in rows if any(x != "&mdash;" for x in r[1:])]
@@ -375,7 +379,23 @@ def _ms_section(results: dict) -> str:
             + _table(["Field"] + [f"Channel {html.escape(c)}" for c in ms], rows)
             + '<p class="muted">Share: the multiple-scattering term over the glow (pixels off the '
               "bulb), with its Monte Carlo standard error; the moves are those of the fit in "
-              "posterior sd of log &kappa;<sub>t</sub> and atanh g (docs/inference.md).</p>\n")
+              "posterior sd of log &kappa;<sub>t</sub> and atanh g; the move with other random "
+              "numbers is in units of the sd the term's error (its jackknife, included in the "
+              "intervals) gives it; a second fit far from the first means the images do not "
+              "decide between them (docs/inference.md).</p>\n")
+
+
+def _term_sd_cell(sd: Any) -> str:
+    """results.json's ``term_sd`` (sd per sampler coordinate): those of log kappa_t and atanh g."""
+    if not isinstance(sd, dict):
+        return "&mdash;"
+    return ", ".join(_cell(_num(sd.get(k)), 2) for k in ("log_kappa_t", "atanh_g"))
+
+
+def _restart_cell(v: Any) -> str:
+    if not isinstance(v, dict):
+        return "&mdash;"
+    return f"{_cell(_num(v.get('kappa_t')), 4)}, {_cell(_num(v.get('g')), 3)}"
 
 
 def _trust_box(results: dict) -> str:
