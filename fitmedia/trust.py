@@ -129,8 +129,9 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
             reasons.append(
                 f"the full-transport fit of channel {ch} did not settle: after "
                 f"{ms['refreshes']} refreshes of the multiple-scattering term the best fit still "
-                f"moved by {ms['moves_sd'][-1]:.2g} posterior sd; the values of channel {ch} are "
-                "uncertain by more than their intervals show")
+                f"moved by {ms['moves_sd'][-1]:.2g} posterior sd, more than the term's own "
+                f"Monte Carlo error explains; the values of channel {ch} are uncertain by more "
+                "than their intervals show")
         restart = ms.get("restart_shift_sd")
         if restart is not None and not restart <= RESTART_SD:
             other = ms.get("restart_values") or {}

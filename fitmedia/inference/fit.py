@@ -452,6 +452,7 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     other = space.to_params(restart_x)
     out.update(model_used="full", ms_share=share, ms_share_se=share_se,
                full_refreshes=info.refreshes, full_moves_sd=info.moves_sd,
+               full_moves_term=info.moves_term,
                full_converged=info.converged, ms_term_cov=term_cov,
                ms_restart_shift_sd=restart_sd,
                ms_restart_values={"kappa_t": float(other.kappa_t), "g": float(other.g)},

@@ -7,7 +7,9 @@ log kappa_t and atanh g, the same random numbers) built around one point.  The
 fitter finds the single-scattering MAP first, then alternates: refresh the local
 model at the current MAP, polish the MAP with it (within a trust region where the
 local model is first-order accurate), until the MAP moves by less than
-``MOVE_TOL_SD`` of its posterior sd.  The sampler then runs on the last local model.
+``MOVE_TOL_SD`` of its posterior sd, or by less than what two realisations of the term
+explain (``term_jackknife``: each refresh at a new point is partly a new realisation, and
+that error is in the values' uncertainty).  The sampler then runs on the last local model.
 
 The term's Monte Carlo error enters the likelihood's variance (``ChannelProblem.
 refresh_models``): the per-pixel variance of the estimate at the refresh point, times
@@ -59,6 +61,8 @@ class FullFitInfo:
 
     refreshes: int = 0
     moves_sd: list[float] = field(default_factory=list)
+    #: the same moves in units of what the term's realisation explains (_in_term_units)
+    moves_term: list[float] = field(default_factory=list)
     converged: bool = False
 
 
@@ -110,12 +114,15 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
             lo[j], hi[j] = max(lo[j], res.x[j] - TRUST_STEP), min(hi[j], res.x[j] + TRUST_STEP)
         new = find_map(problem.log_posterior, np.clip(res.x, lo, hi), lo, hi, global_evals=0)
         move = _move_in_sd(problem, space, res.x, new)
-        log.debug("full transport: refresh %d at %s -> %s, move %.3g sd", info.refreshes + 1,
-                  np.round(res.x, 4), np.round(new.x, 4), move)
+        jitter = (_in_term_units(res.x, new.x, new.cov, term_jackknife(problem, new))
+                  if new.cov is not None else float("inf"))
+        log.debug("full transport: refresh %d at %s -> %s, move %.3g sd, %.3g in term units",
+                  info.refreshes + 1, np.round(res.x, 4), np.round(new.x, 4), move, jitter)
         info.refreshes += 1
         info.moves_sd.append(move)
+        info.moves_term.append(jitter)
         res = new
-        if move < MOVE_TOL_SD:
+        if move < MOVE_TOL_SD or jitter < 1.0:
             info.converged = True
             break
     final = find_map(problem.log_posterior, res.x, space.lower, space.upper, global_evals=0)
@@ -212,9 +219,20 @@ def seed_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult, s
     problem.adapt(res.x)
     if term_cov is None or res.cov is None:
         return _move_in_sd(problem, space, res.x, other)
+    return _in_term_units(res.x, other.x, res.cov, term_cov)
+
+
+def _in_term_units(a: np.ndarray, b: np.ndarray, cov: np.ndarray,
+                   term_cov: np.ndarray | None) -> float:
+    """Largest difference of log kappa_t and atanh g between ``a`` and ``b`` in units of the
+    sd that two independent realisations of the term give it (sqrt(2 C_jj), ``term_cov`` the
+    jackknife's C) plus the refreshes' tolerance (``MOVE_TOL_SD`` Laplace sd at each end);
+    inf without ``term_cov``."""
+    if term_cov is None:
+        return float("inf")
     idx = [0, 2]
-    sd = np.sqrt(2.0 * np.diag(term_cov)[idx] + 2.0 * MOVE_TOL_SD**2 * np.diag(res.cov)[idx])
-    return float(np.max(np.abs(other.x[idx] - res.x[idx]) / sd))
+    sd = np.sqrt(2.0 * np.diag(term_cov)[idx] + 2.0 * MOVE_TOL_SD**2 * np.diag(cov)[idx])
+    return float(np.max(np.abs(b[idx] - a[idx]) / sd))
 
 
 def restart_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult,

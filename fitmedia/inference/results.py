@@ -87,7 +87,8 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
             "share": f.get("ms_share"), "share_se": f.get("ms_share_se"),
             "share_at_single_scattering_map": f.get("ms_share_single_map"),
             **({"refreshes": f["full_refreshes"], "converged": f["full_converged"],
-                "moves_sd": f["full_moves_sd"], "seed_shift_sd": f["ms_seed_shift_sd"],
+                "moves_sd": f["full_moves_sd"], "moves_term_units": f.get("full_moves_term"),
+                "seed_shift_sd": f["ms_seed_shift_sd"],
                 "term_sd": _term_sd(f), "restart_shift_sd": f.get("ms_restart_shift_sd"),
                 "restart_values": f.get("ms_restart_values")}
                if f["model_used"] == "full" else {})}
