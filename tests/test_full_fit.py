@@ -55,6 +55,26 @@ class StubFullTransport:
             self.ms_part(kappa_a, kappa_s, g, brightness)[0]
 
 
+def _stub_problem(rng, ka: float, model=None):
+    """A 32 x 24 px G capture rendered by StubFullTransport (kappa_a ``ka``, kappa_s 0.012,
+    g 0.85, brightness 1) with Poisson-Gaussian-like noise; its ChannelProblem, whose
+    observation model is ``model(single)`` (else the analytic single scattering ``single``);
+    the truth, and the MAP found from it.  Returns (single, problem, space, truth, map)."""
+    spec = make_spec(width=32, height=24)
+    ks, g, b = 0.012, 0.85, 1.0
+    single = SingleScattering(spec, None, channels=("G",))
+    clean = StubFullTransport(single).render([ka], [ks], [g], [b])[..., 0]
+    gain, read = 2e-5, 1e-9
+    data = clean + rng.normal(0.0, np.sqrt(gain * clean + read))
+    obs = [Observation(single if model is None else model(single), data, single.support, 1.0)]
+    space = ParameterSpace(free_brightness=False, brightness_guess=b)
+    problem = ChannelProblem(obs, space, b, (gain, read))
+    truth = space.to_vector(ChannelParams(ka + ks, ks / (ka + ks), g, None))
+    problem.adapt(truth)
+    res = find_map(problem.log_posterior, truth, space.lower, space.upper, global_evals=0)
+    return single, problem, space, truth, res
+
+
 def _sd(res, j: int) -> float:
     return float(np.sqrt(res.cov[j, j]))
 
@@ -64,19 +84,9 @@ def test_refresh_loop_recovers_a_stub_full_transport_capture(rng):
     glow) with Poisson-Gaussian-like noise; the single-scattering MAP misses kappa_t or g by
     more than 4 of its sd (negative control: the extra glow matters), the loop's MAP finds
     both within 4 sd, and the loop settles."""
-    spec = make_spec(width=32, height=24)
-    ka, ks, g, b = 0.0004, 0.012, 0.85, 1.0
-    single = SingleScattering(spec, None, channels=("G",))
+    single, problem, space, truth, res = _stub_problem(rng, 0.0004)
     stub = StubFullTransport(single)
-    clean = stub.render([ka], [ks], [g], [b])[..., 0]
-    gain, read = 2e-5, 1e-9
-    data = clean + rng.normal(0.0, np.sqrt(gain * clean + read))
-    obs = [Observation(single, data, single.support, 1.0)]
-    space = ParameterSpace(free_brightness=False, brightness_guess=b)
-    problem = ChannelProblem(obs, space, b, (gain, read))
-    truth = space.to_vector(ChannelParams(ka + ks, ks / (ka + ks), g, None))
-    problem.adapt(truth)
-    res = find_map(problem.log_posterior, truth, space.lower, space.upper, global_evals=0)
+    obs = problem.obs
     off_single = max(abs(res.x[j] - truth[j]) / _sd(res, j) for j in (0, 2))
     assert off_single > 4, f"single-scattering MAP only {off_single:.2g} sd off: no control"
     obs[0].model = stub
@@ -181,19 +191,9 @@ def test_term_jackknife_matches_the_spread_of_independent_realisations(rng):
     covariance to posterior samples."""
     from fitmedia.inference.full import convolve_samples, term_jackknife
 
-    spec = make_spec(width=32, height=24)
-    ka, ks, g, b = 0.002, 0.012, 0.85, 1.0
-    single = SingleScattering(spec, None, channels=("G",))
-    stub = StubBatchedTransport(single, rng)
-    clean = StubFullTransport(single).render([ka], [ks], [g], [b])[..., 0]
-    gain, read = 2e-5, 1e-9
-    data = clean + rng.normal(0.0, np.sqrt(gain * clean + read))
-    obs = [Observation(stub, data, single.support, 1.0)]
-    space = ParameterSpace(free_brightness=False, brightness_guess=b)
-    problem = ChannelProblem(obs, space, b, (gain, read))
-    truth = space.to_vector(ChannelParams(ka + ks, ks / (ka + ks), g, None))
-    problem.adapt(truth)
-    res = find_map(problem.log_posterior, truth, space.lower, space.upper, global_evals=0)
+    _, problem, space, truth, res = _stub_problem(rng, 0.002,
+                                                  lambda single: StubBatchedTransport(single, rng))
+    stub = problem.obs[0].model
     jk = term_jackknife(problem, res)
     assert stub.leave_out is None  # left as found
     refits = []

@@ -26,14 +26,13 @@ from fitmedia.inference.params import ChannelParams, ParameterSpace
 from fitmedia.spec import load_spec
 
 CAP = Path(__file__).resolve().parents[2] / "tests" / "data" / "misfit" / "milk_full"
-N_PATHS = int(sys.argv[1]) if len(sys.argv) > 1 else 256
-if len(sys.argv) > 2:
-    ms_paths.GUIDE_ORDERS = int(sys.argv[2])
 SEEDS = range(11, 19)
 
 
-def problem():
-    spec = load_spec(CAP / "capture.yaml")
+def problem(cap: Path = CAP):
+    """(spec, channel, channel index, brightness, space, problem) of a one-image capture's
+    first channel, with the model and noise of ``fitmedia fit``."""
+    spec = load_spec(cap / "capture.yaml")
     prep = F.prepare(spec)
     ch = spec.channels[0]
     ci = F.CHANNELS.index(ch)
@@ -51,6 +50,9 @@ def problem():
 
 
 def main():
+    n_paths = int(sys.argv[1]) if len(sys.argv) > 1 else 256
+    if len(sys.argv) > 2:
+        ms_paths.GUIDE_ORDERS = int(sys.argv[2])
     spec, ch, ci, b, space, prob = problem()
     t = json.loads((CAP / "truth.json").read_text())["undiluted"]
     xt = space.to_vector(ChannelParams(t["kappa_t"][ch], t["albedo"][ch], t["g"][ch], b))
@@ -58,7 +60,7 @@ def main():
     rows, terms, errs = [], [], []
     for seed in SEEDS:
         o = prob.obs[0]
-        o.model = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=1, n_paths=N_PATHS,
+        o.model = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=1, n_paths=n_paths,
                                 single=getattr(o.model, "single", o.model))
         prob.refresh_models(xt)
         prob.adapt(xt)
@@ -80,7 +82,7 @@ def main():
     glow = m > 1e-3 * m.max()
     rel = A.std(0, ddof=1)[glow] / m[glow]
     stated = np.mean(errs, axis=0)[glow] / m[glow]
-    print(f"{N_PATHS} paths per pixel, GUIDE_ORDERS {ms_paths.GUIDE_ORDERS}: MAP over "
+    print(f"{n_paths} paths per pixel, GUIDE_ORDERS {ms_paths.GUIDE_ORDERS}: MAP over "
           f"{len(SEEDS)} seeds: mean {np.round(R[:, :3].mean(0), 3)}, sd "
           f"{np.round(R[:, :3].std(0, ddof=1), 3)} (kappa_t, kappa_s relative; g absolute); "
           f"term per glow pixel: relative sd between seeds median {np.median(rel):.3f}, "

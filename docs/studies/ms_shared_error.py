@@ -24,28 +24,9 @@ import numpy as np
 from fitmedia.forward.multiple import FullTransport
 from fitmedia.inference import fit as F
 from fitmedia.inference.full import term_jackknife
-from fitmedia.inference.likelihood import ChannelProblem, Observation
 from fitmedia.inference.optimize import find_map
-from fitmedia.inference.params import ChannelParams, ParameterSpace
-from fitmedia.spec import load_spec
-
-
-def problem(cap: Path):
-    spec = load_spec(cap / "capture.yaml")
-    prep = F.prepare(spec)
-    ch = spec.channels[0]
-    ci = F.CHANNELS.index(ch)
-    im = prep.images[0]
-    gmap, rmap = prep.noise_maps["images[0]"]
-    model = F._model(spec, 0, ch, F.FitOptions(mcmc=False, progress=False))
-    obs = [Observation(model, im.data[..., ci], im.valid[..., ci] & model.support,
-                       spec.images[0].concentration, gmap[..., ci], rmap[..., ci])]
-    b = prep.brightness[ch]
-    space = ParameterSpace(free_brightness=True, brightness_guess=b,
-                           brightness_rel_sd=prep.brightness_rel_sd[ch], background_sd=None,
-                           priors=spec.priors)
-    prob = ChannelProblem(obs, space, None, prep.noise[ch], water_kappa_a=spec.water_kappa_a[ci])
-    return spec, ch, b, space, prob
+from fitmedia.inference.params import ChannelParams
+from ms_realisation import problem  # docs/studies/ is on sys.path when this file is run
 
 
 def _variant(prob, o, spec, t, ch, b):
@@ -83,7 +64,7 @@ def main():
     cap = Path(sys.argv[1])
     n_paths = int(sys.argv[2]) if len(sys.argv) > 2 else 256
     seeds = range(11, 11 + (int(sys.argv[3]) if len(sys.argv) > 3 else 8))
-    spec, ch, b, space, prob = problem(cap)
+    spec, ch, _, b, space, prob = problem(cap)
     t = json.loads((cap / "truth.json").read_text())["undiluted"]
     xt = space.to_vector(ChannelParams(t["kappa_t"][ch], t["albedo"][ch], t["g"][ch], b))
     prob.adapt(xt)
