@@ -85,17 +85,10 @@ def _move_in_sd(problem: ChannelProblem, space: ParameterSpace, old: np.ndarray,
     on its plateau), the sd of the two with the other parameters held at the MAP."""
     idx = [0, 2]
     far = new.x if to is None else to
-    if new.cov is not None:
-        sd = np.sqrt(np.diag(new.cov)[idx])
-    else:
-        def sub(y):
-            x = new.x.copy()
-            x[idx] = y
-            return problem.log_posterior(x)
-        cov = laplace_covariance(sub, new.x[idx], space.lower[idx], space.upper[idx])
-        if cov is None:
-            return float("inf")
-        sd = np.sqrt(np.diag(cov))
+    cov = new.cov if new.cov is not None else _ridge_covariance(problem, new.x)
+    if cov is None:
+        return float("inf")
+    sd = np.sqrt(np.diag(cov)[idx])
     return float(np.max(np.abs(far[idx] - old[idx]) / sd))
 
 
@@ -114,8 +107,8 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
             lo[j], hi[j] = max(lo[j], res.x[j] - TRUST_STEP), min(hi[j], res.x[j] + TRUST_STEP)
         new = find_map(problem.log_posterior, np.clip(res.x, lo, hi), lo, hi, global_evals=0)
         move = _move_in_sd(problem, space, res.x, new)
-        jitter = (_in_term_units(res.x, new.x, new.cov, term_jackknife(problem, new))
-                  if new.cov is not None else float("inf"))
+        jitter = _in_term_units(res.x, new.x, _cov_or_ridge(problem, new),
+                                term_jackknife(problem, new))
         log.debug("full transport: refresh %d at %s -> %s, move %.3g sd, %.3g in term units",
                   info.refreshes + 1, np.round(res.x, 4), np.round(new.x, 4), move, jitter)
         info.refreshes += 1
@@ -139,10 +132,11 @@ def term_jackknife(problem: ChannelProblem, res: MapResult) -> np.ndarray | None
     ``2 P`` posterior evaluations per batch and no new trace.  None without a Monte Carlo
     model or a Laplace covariance."""
     models = [o.model for o in problem.obs if hasattr(o.model, "leave_out")]
-    if not models or res.cov is None:
+    cov = res.cov if res.cov is not None else _ridge_covariance(problem, res.x)
+    if not models or cov is None:
         return None
     lo, hi = problem.space.lower, problem.space.upper
-    step = JACKKNIFE_STEP_SD * np.sqrt(np.diag(res.cov))
+    step = np.where(np.diag(cov) > 0, JACKKNIFE_STEP_SD * np.sqrt(np.diag(cov)), 0.0)
     deltas = []
     try:
         for i in range(min(m.ms.batches for m in models)):
@@ -154,7 +148,7 @@ def term_jackknife(problem: ChannelProblem, res: MapResult) -> np.ndarray | None
                 up[j], down[j] = min(hi[j], res.x[j] + step[j]), max(lo[j], res.x[j] - step[j])
                 if up[j] > down[j]:
                     grad[j] = (problem.log_posterior(up) - problem.log_posterior(down)) / (up[j] - down[j])
-            deltas.append(res.cov @ grad)
+            deltas.append(cov @ grad)
     finally:
         for m in models:
             m.leave_out = None
@@ -163,6 +157,25 @@ def term_jackknife(problem: ChannelProblem, res: MapResult) -> np.ndarray | None
         return None
     d -= d.mean(axis=0)
     return (len(d) - 1) / len(d) * d.T @ d
+
+
+def _ridge_covariance(problem: ChannelProblem, x: np.ndarray) -> np.ndarray | None:
+    """Where the full Laplace covariance is not positive definite (the albedo on its
+    plateau): the covariance of log kappa_t and atanh g with the other coordinates held at
+    ``x``, embedded in a (P, P) matrix with zeros elsewhere (the term's error is then carried
+    by those two alone); None if that is not positive definite either."""
+    idx = [0, 2]
+
+    def sub(y):
+        z = x.copy()
+        z[idx] = y
+        return problem.log_posterior(z)
+    small = laplace_covariance(sub, x[idx], problem.space.lower[idx], problem.space.upper[idx])
+    if small is None:
+        return None
+    cov = np.zeros((len(x), len(x)))
+    cov[np.ix_(idx, idx)] = small
+    return cov
 
 
 def convolve_samples(samples: np.ndarray, cov: np.ndarray, rng: np.random.Generator
@@ -217,18 +230,23 @@ def seed_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult, s
         o.model = m
     problem._model_var = saved
     problem.adapt(res.x)
-    if term_cov is None or res.cov is None:
+    if term_cov is None:
         return _move_in_sd(problem, space, res.x, other)
-    return _in_term_units(res.x, other.x, res.cov, term_cov)
+    return _in_term_units(res.x, other.x, _cov_or_ridge(problem, res), term_cov)
 
 
-def _in_term_units(a: np.ndarray, b: np.ndarray, cov: np.ndarray,
+def _cov_or_ridge(problem: ChannelProblem, res: MapResult) -> np.ndarray | None:
+    """The Laplace covariance of ``res``, else that of log kappa_t and atanh g alone."""
+    return res.cov if res.cov is not None else _ridge_covariance(problem, res.x)
+
+
+def _in_term_units(a: np.ndarray, b: np.ndarray, cov: np.ndarray | None,
                    term_cov: np.ndarray | None) -> float:
     """Largest difference of log kappa_t and atanh g between ``a`` and ``b`` in units of the
     sd that two independent realisations of the term give it (sqrt(2 C_jj), ``term_cov`` the
     jackknife's C) plus the refreshes' tolerance (``MOVE_TOL_SD`` Laplace sd at each end);
-    inf without ``term_cov``."""
-    if term_cov is None:
+    inf without ``term_cov`` or ``cov``."""
+    if term_cov is None or cov is None:
         return float("inf")
     idx = [0, 2]
     sd = np.sqrt(2.0 * np.diag(term_cov)[idx] + 2.0 * MOVE_TOL_SD**2 * np.diag(cov)[idx])
@@ -254,9 +272,10 @@ def restart_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult
     other, _ = refine_map(problem, space, first, max_refresh=RESTART_REFRESHES)
     problem.refresh_models(res.x)
     problem.adapt(res.x)
-    if res.cov is None or term_cov is None:  # in posterior sd (the albedo on its plateau)
-        return _move_in_sd(problem, space, res.x, res, other.x), other.x
-    sd = np.sqrt(np.diag(res.cov + term_cov)[idx])
+    cov = _cov_or_ridge(problem, res)
+    if cov is None:
+        return float("inf"), other.x
+    sd = np.sqrt(np.diag(cov + (term_cov if term_cov is not None else 0.0))[idx])
     return float(np.max(np.abs(other.x[idx] - res.x[idx]) / sd)), other.x
 
 
