@@ -115,6 +115,10 @@ SEED_SHIFT_Z = 3.0
 #: a second full-transport fit started beyond the MAP (inference/full.py: restart_shift) that
 #: ends more than this many sd (Laplace plus the term's jackknife) away: two fixed points
 RESTART_SD = 3.0
+#: with the full model, an optimum with g of the other sign within this many log-posterior
+#: units leaves the sign of g undetermined (the full model has no two-mode sampler; the single
+#: model samples both modes within inference/fit.py's OTHER_MODE_DELTA, the same 8 units)
+OTHER_G_DELTA = 8.0
 
 
 def transport_reasons(chans: dict[str, dict]) -> list[str]:
@@ -132,6 +136,14 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"moved by {ms['moves_sd'][-1]:.2g} posterior sd, more than the term's own "
                 f"Monte Carlo error explains; the values of channel {ch} are uncertain by more "
                 "than their intervals show")
+        other = ms.get("other_g_mode") or {}
+        if other.get("delta_log_posterior") is not None \
+                and not other["delta_log_posterior"] < -OTHER_G_DELTA:
+            reasons.append(
+                f"with the full-transport model, g of the other sign in channel {ch} (g "
+                f"{other['g']:.3g}, kappa_t {other['kappa_t']:.4g}) fits within "
+                f"{-other['delta_log_posterior']:.2g} log-posterior units of the values given: "
+                f"the sign of g in channel {ch} is not determined by the images")
         restart = ms.get("restart_shift_sd")
         if restart is not None and not restart <= RESTART_SD:
             other = ms.get("restart_values") or {}

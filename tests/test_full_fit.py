@@ -103,8 +103,9 @@ def test_refresh_loop_recovers_a_stub_full_transport_capture(rng):
 def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understated():
     """trust.transport_reasons in plain words: a restart that ended beyond RESTART_SD names the
     other values; a seed shift beyond SEED_SHIFT_Z (with the jackknife's term_sd present) says
-    the intervals understate the term's error; within both bounds nothing is said."""
-    from fitmedia.trust import RESTART_SD, SEED_SHIFT_Z, transport_reasons
+    the intervals understate the term's error; an optimum with g of the other sign within
+    OTHER_G_DELTA says the sign of g is not determined; within the bounds nothing is said."""
+    from fitmedia.trust import OTHER_G_DELTA, RESTART_SD, SEED_SHIFT_Z, transport_reasons
 
     base = {"refreshes": 3, "converged": True, "moves_sd": [2.0, 0.05],
             "term_sd": {"log_kappa_t": 0.01}, "seed_shift_sd": 0.5, "restart_shift_sd": 0.4,
@@ -117,6 +118,14 @@ def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understa
     moved = {**base, "seed_shift_sd": SEED_SHIFT_Z + 0.8}
     (reason,) = transport_reasons({"B": {"multiple_scattering": moved}})
     assert "channel B by 3.8 times" in reason and "understate" in reason
+    # g of the other sign within OTHER_G_DELTA log-posterior units: the sign is not determined
+    near = {**base, "other_g_mode": {"g": -0.91, "kappa_t": 9.1,
+                                     "delta_log_posterior": -OTHER_G_DELTA + 1.0}}
+    (reason,) = transport_reasons({"R": {"multiple_scattering": near}})
+    assert "g of the other sign in channel R (g -0.91" in reason and "not determined" in reason
+    far = {**base, "other_g_mode": {"g": -0.91, "kappa_t": 9.1,
+                                    "delta_log_posterior": -OTHER_G_DELTA - 1.0}}
+    assert transport_reasons({"R": {"multiple_scattering": far}}) == []
 
 
 def _fit(spec: Path, out: Path, *extra: str) -> tuple[int, dict]:

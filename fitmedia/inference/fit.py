@@ -269,7 +269,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     res, alt = search_map(setup, options, rng)
     transport: dict = {}  # --model full / auto: what was used (_full_transport)
     if options.model != "single" and forward is None:
-        res, transport = _full_transport(problem, space, res, spec, channel, options, seed)
+        res, transport = _full_transport(problem, space, res, spec, channel, options, seed, alt)
         if transport["model_used"] == "full":
             alt = None  # the other g mode was judged with single scattering only
     other_mode = None if alt is None else {
@@ -427,11 +427,13 @@ def _sample_channel(problem: ChannelProblem, space: ParameterSpace, res: MapResu
 
 
 def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec,
-                    channel: str, options: FitOptions, seed: int) -> tuple:
+                    channel: str, options: FitOptions, seed: int, alt=None) -> tuple:
     """``--model full`` / ``auto`` from the single-scattering MAP ``res``: the multiple-
     scattering share there, and (full, or auto above ``AUTO_SHARE``) the full-transport MAP
-    and how far another realisation of the term moves it (inference/full.py).  Returns the
-    MAP and the fields of ``fit_channel``'s result that say what was used."""
+    and how far another realisation of the term moves it (inference/full.py).  ``alt``: the
+    single-scattering optimum with g of the other sign, if one was found; it is refined with
+    the full model too and the better of the two kept (``full_other_g_mode`` the other).
+    Returns the MAP and the fields of ``fit_channel``'s result that say what was used."""
     from .full import (AUTO_SHARE, ms_images, ms_share, refine_map, restart_shift, seed_shift,
                        term_jackknife, use_full_transport)
 
@@ -446,6 +448,18 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     use_full_transport(problem, spec, channel, seed=ms_seed)
     single_x = res.x
     res, info = refine_map(problem, space, res)
+    other_g = None
+    if alt is not None:  # the other sign of g, refined with the full model as well
+        alt_full, alt_info = refine_map(problem, space, alt)
+        lp_alt = _log_posterior_refreshed(problem, alt_full.x)
+        lp_res = _log_posterior_refreshed(problem, res.x)
+        if lp_alt > lp_res:
+            res, alt_full, info, single_x, lp_res, lp_alt = \
+                alt_full, res, alt_info, alt.x, lp_alt, lp_res
+            problem.refresh_models(res.x)
+            problem.adapt(res.x)
+        other_g = {"g": float(np.tanh(alt_full.x[2])), "kappa_t": float(np.exp(alt_full.x[0])),
+                   "delta_log_posterior": float(lp_alt - lp_res)}
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
     term_cov = term_jackknife(problem, res)
     restart_sd, restart_x = restart_shift(problem, space, res, single_x, term_cov)
@@ -458,8 +472,16 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                ms_restart_values={"kappa_t": float(other.kappa_t), "g": float(other.g)},
                ms_seed_shift_sd=seed_shift(problem, space, res, spec, channel, seed=check_seed,
                                            term_cov=term_cov),
-               ms_images=ms_images(problem, res.x))
+               ms_images=ms_images(problem, res.x), full_other_g_mode=other_g)
     return res, out
+
+
+def _log_posterior_refreshed(problem: ChannelProblem, x: np.ndarray) -> float:
+    """The full model's log posterior at ``x`` with its local model rebuilt there (the same
+    random numbers wherever it is built, so two points compare on one realisation)."""
+    problem.refresh_models(x)
+    problem.adapt(x)
+    return float(problem.log_posterior(x))
 
 
 def albedo_redraw(space: ParameterSpace, x_map: np.ndarray, cov: np.ndarray | None) -> Redraw:

@@ -90,7 +90,8 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
                 "moves_sd": f["full_moves_sd"], "moves_term_units": f.get("full_moves_term"),
                 "seed_shift_sd": f["ms_seed_shift_sd"],
                 "term_sd": _term_sd(f), "restart_shift_sd": f.get("ms_restart_shift_sd"),
-                "restart_values": f.get("ms_restart_values")}
+                "restart_values": f.get("ms_restart_values"),
+                "other_g_mode": f.get("full_other_g_mode")}
                if f["model_used"] == "full" else {})}
     params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys)
     info.update(kappa_s_reduced_width_ratio=ratio, kappa_s_g_separable=separable(
