@@ -77,19 +77,16 @@ def use_full_transport(problem: ChannelProblem, spec, channel: str, *, seed: int
         o.model = FullTransport(spec, i, channels=(channel,), seed=seed, single=o.model, bin=b)
 
 
-def _move_in_sd(problem: ChannelProblem, space: ParameterSpace, old: np.ndarray,
-                new: MapResult, to: np.ndarray | None = None) -> float:
+def _move_in_sd(problem: ChannelProblem, old: np.ndarray, new: MapResult) -> float:
     """Largest move of log kappa_t and atanh g (the local model's coordinates) between two
-    MAPs (``old`` and ``new``, or ``to`` where given), in units of the posterior sd at ``new``:
-    the Laplace sd, or where the full Laplace covariance is not positive definite (the albedo
-    on its plateau), the sd of the two with the other parameters held at the MAP."""
+    MAPs, in units of the posterior sd at the new one: the Laplace sd, or where the full
+    Laplace covariance is not positive definite (the albedo on its plateau), the sd of the
+    two with the other parameters held at the MAP (``_cov_or_ridge``)."""
     idx = [0, 2]
-    far = new.x if to is None else to
-    cov = new.cov if new.cov is not None else _ridge_covariance(problem, new.x)
+    cov = _cov_or_ridge(problem, new)
     if cov is None:
         return float("inf")
-    sd = np.sqrt(np.diag(cov)[idx])
-    return float(np.max(np.abs(far[idx] - old[idx]) / sd))
+    return float(np.max(np.abs(new.x[idx] - old[idx]) / np.sqrt(np.diag(cov)[idx])))
 
 
 def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult, *,
@@ -106,7 +103,7 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
         for j in (0, 2):  # log kappa_t, atanh g: the local model's coordinates
             lo[j], hi[j] = max(lo[j], res.x[j] - TRUST_STEP), min(hi[j], res.x[j] + TRUST_STEP)
         new = find_map(problem.log_posterior, np.clip(res.x, lo, hi), lo, hi, global_evals=0)
-        move = _move_in_sd(problem, space, res.x, new)
+        move = _move_in_sd(problem, res.x, new)
         jitter = _in_term_units(res.x, new.x, _cov_or_ridge(problem, new),
                                 term_jackknife(problem, new))
         log.debug("full transport: refresh %d at %s -> %s, move %.3g sd, %.3g in term units",
@@ -129,10 +126,11 @@ def term_jackknife(problem: ChannelProblem, res: MapResult) -> np.ndarray | None
     over the term's independent batches of paths.  Each leave-one-out MAP is one Newton step
     from ``res`` (its Laplace covariance times the gradient of the log posterior with that
     batch left out, central differences at a tenth of a posterior sd), so the whole costs
-    ``2 P`` posterior evaluations per batch and no new trace.  None without a Monte Carlo
-    model or a Laplace covariance."""
+    ``2 P`` posterior evaluations per batch and no new trace.  Where the Laplace covariance is
+    not positive definite, that of log kappa_t and atanh g alone (``_cov_or_ridge``).  None
+    without a Monte Carlo model or either covariance."""
     models = [o.model for o in problem.obs if hasattr(o.model, "leave_out")]
-    cov = res.cov if res.cov is not None else _ridge_covariance(problem, res.x)
+    cov = _cov_or_ridge(problem, res)
     if not models or cov is None:
         return None
     lo, hi = problem.space.lower, problem.space.upper
@@ -231,7 +229,7 @@ def seed_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult, s
     problem._model_var = saved
     problem.adapt(res.x)
     if term_cov is None:
-        return _move_in_sd(problem, space, res.x, other)
+        return _move_in_sd(problem, res.x, other)
     return _in_term_units(res.x, other.x, _cov_or_ridge(problem, res), term_cov)
 
 
