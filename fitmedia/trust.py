@@ -18,6 +18,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .inference.fit import OTHER_MODE_DELTA
+
 #: Tail probability of the noise-only chi2 distribution that the guard tolerates.
 CHI2_TAIL = 1e-6
 #: Allowance for model error in chi2/pixel, added to the noise-only limit.  Chosen from
@@ -116,9 +118,9 @@ SEED_SHIFT_Z = 3.0
 #: ends more than this many sd (Laplace plus the term's jackknife) away: two fixed points
 RESTART_SD = 3.0
 #: with the full model, an optimum with g of the other sign within this many log-posterior
-#: units leaves the sign of g undetermined (the full model has no two-mode sampler; the single
-#: model samples both modes within inference/fit.py's OTHER_MODE_DELTA, the same 8 units)
-OTHER_G_DELTA = 8.0
+#: units leaves the sign of g undetermined: the single model's bound for sampling both modes
+#: (the full model has no two-mode sampler)
+OTHER_G_DELTA = OTHER_MODE_DELTA
 
 
 def transport_reasons(chans: dict[str, dict]) -> list[str]:
@@ -146,12 +148,12 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"the sign of g in channel {ch} is not determined by the images")
         restart = ms.get("restart_shift_sd")
         if restart is not None and not restart <= RESTART_SD:
-            other = ms.get("restart_values") or {}
+            second = ms.get("restart_values") or {}
             reasons.append(
                 f"a second full-transport fit of channel {ch}, started further along the "
                 f"direction in which multiple scattering moves the values, ended {restart:.2g} sd "
-                f"away (kappa_t {other.get('kappa_t', float('nan')):.4g}, g "
-                f"{other.get('g', float('nan')):.3g}): the images do not decide between the two, "
+                f"away (kappa_t {second.get('kappa_t', float('nan')):.4g}, g "
+                f"{second.get('g', float('nan')):.3g}): the images do not decide between the two, "
                 f"and the values of channel {ch} are not determined to within their intervals")
         shift = ms.get("seed_shift_sd")
         if shift is None:
