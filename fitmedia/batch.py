@@ -234,6 +234,8 @@ def _identity_differs(results: FitResult, spec: str | Path, options: FitOptions)
 def _finished_round(task: RoundTask) -> dict | None:
     """The record of a finished round in the task's folder, or None; a finished round of a
     different medium, ml, seed, geometry or fit options is an error (a reused ``out_dir``)."""
+    from .validate import SCORED
+
     rec = _read_json(Path(task.out) / "round.json")
     if rec is None or rec.get("status") != "done":
         return None
@@ -249,8 +251,10 @@ def _finished_round(task: RoundTask) -> dict | None:
         raise InputError(f"--out: {task.out} holds a finished round with {diff}; "
                          "use a new --out folder or the same settings")
     scores = rec.get("scores") or []
-    if any(s.get("optical_depth") is None for s in scores):
-        # scored before scores carried the optical depth: score it again from its files
+    if scores and (any(s.get("optical_depth") is None or "trusted" not in s for s in scores)
+                   or {s["quantity"] for s in scores} != set(SCORED)):
+        # scored before scores carried the optical depth, the fit's trust or kappa_s': score it
+        # again from its files
         rec["scores"] = [asdict(s) for s in score_round(Path(task.out), task.medium, task.ml)]
         write_json(Path(task.out) / "round.json", {**rec, "status": "done"})
     return {**rec, "status": "done earlier"}

@@ -4,6 +4,7 @@ in the posterior, coverage of credible intervals)."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,7 +17,10 @@ from .regimes import INFORMATIVE_OPTICAL_DEPTH, REGIMES, regime, tank_optical_de
 from .spec import Spec
 from .util import atomic_write, atomic_write_text, write_json
 
-SCORED = ("kappa_s", "kappa_t", "g")
+SCORED = ("kappa_s", "kappa_t", "g", "kappa_s_reduced")
+#: what the scored quantities are, from a channel's posterior samples (kappa_s' = kappa_s (1 - g):
+#: the reduced scattering coefficient, the one a dense medium constrains)
+_FROM_SAMPLES = {"kappa_s_reduced": lambda get: get("kappa_s") * (1.0 - get("g"))}
 #: Central credible intervals whose coverage is reported.
 LEVELS = (0.68, 0.90, 0.99)
 #: Pass criteria: the 90 % intervals cover the truth in this fraction of the scores ...
@@ -42,6 +46,9 @@ class Score:
     #: (median - truth) / sd in the sampler's coordinate (log kappa, atanh g), where the
     #: posterior is close to normal; None where undefined (see :func:`normal_score`)
     z_normal: float | None = None
+    #: results.json's ``trust.ok`` of the fit (False: ``fitmedia fit`` exited 1 and said the
+    #: values cannot be trusted); None for scores recorded before it was kept
+    trusted: bool | None = None
 
     @classmethod
     def from_record(cls, d: dict) -> Score:
@@ -111,19 +118,25 @@ def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str,
     from .spec import load_spec
 
     fit_dir = Path(fit_dir)
-    channels = FitResult.from_json(fit_dir).channels
+    result = FitResult.from_json(fit_dir)
+    trusted = bool((json.loads((fit_dir / "results.json").read_text()).get("trust") or {})
+                   .get("ok", True))
     if spec is not None and not isinstance(spec, Spec):
         spec = load_spec(spec)
     values = truth.as_dict()
     scores = []
     with np.load(fit_dir / "samples.npz") as samples:
-        for ch in channels:
+        for ch in result.channels:
             tau = optical_depths(spec, truth, ch) if spec is not None else None
             for q in SCORED:
-                s, t = samples[f"{ch}/{q}"], values[q][ch]
+                if q in _FROM_SAMPLES:
+                    s = _FROM_SAMPLES[q](lambda n: samples[f"{ch}/{n}"])
+                    t = float(_FROM_SAMPLES[q](lambda n: np.asarray(values[n][ch])))
+                else:
+                    s, t = samples[f"{ch}/{q}"], values[q][ch]
                 scores.append(Score(name, tuple(ml), ch, q, t, float(np.median(s)),
                                     float(np.std(s)), float(np.mean(s < t)), tau,
-                                    normal_score(s, t, q)))
+                                    normal_score(s, t, q), trusted))
     return scores
 
 
@@ -231,11 +244,11 @@ def coverage_table(scores: list[Score], levels=LEVELS) -> str:
 
 def _table(blocks: dict[str, dict], levels: Sequence[float]) -> str:
     """The text table of per-quantity blocks (see :func:`_block`); z means over finite z."""
-    lines = [f"{'quantity':10s} {'n':>4s} " + " ".join(f"{int(100 * lv):>5d}%" for lv in levels)
+    lines = [f"{'quantity':15s} {'n':>4s} " + " ".join(f"{int(100 * lv):>5d}%" for lv in levels)
              + "   mean z  mean|z|"]
     for q, b in blocks.items():
         mz, maz = (np.nan if b[k] is None else b[k] for k in ("mean_z", "mean_abs_z"))
-        lines.append(f"{q:10s} {b['n']:4d} " + " ".join(f"{c:6.2f}" for c in b["coverage"].values())
+        lines.append(f"{q:15s} {b['n']:4d} " + " ".join(f"{c:6.2f}" for c in b["coverage"].values())
                      + f"   {mz:+6.2f}  {maz:6.2f}")
     return "\n".join(lines)
 
@@ -280,8 +293,10 @@ def coverage_summary(scores: list[Score], levels: Sequence[float] = LEVELS) -> d
         ``coverage`` (fraction of truths inside the central 68/90/99 % interval),
         ``coverage_90_standard_error`` (binomial), ``mean_z``, ``mean_abs_z`` (z = Phi^-1(1 -
         PIT), :attr:`Score.z`), ``n_infinite_z`` (0 since z became PIT-based; kept for
-        readers of older files); ``criteria.<q>``
-        (``coverage_90_ok``, ``bias_ok``, ``passed``); ``passed``.
+        readers of older files); ``regimes.<regime>.<q>``; ``trusted.<q>``: the same over the
+        scores of fits that exited 0 (``Score.trusted`` not False), with
+        ``n_untrusted_scores``; ``criteria.<q>`` (``coverage_90_ok``, ``bias_ok``,
+        ``passed``), judged on all scores; ``passed``.
     """
     quantities = {q: _block([s for s in scores if s.quantity == q], levels)
                   for q in SCORED if any(s.quantity == q for s in scores)}
@@ -291,6 +306,9 @@ def coverage_summary(scores: list[Score], levels: Sequence[float] = LEVELS) -> d
     regimes = {r: {q: _block([s for s in scores if s.regime == r and s.quantity == q], levels)
                    for q in quantities if any(s.regime == r and s.quantity == q for s in scores)}
                for r in REGIMES if any(s.regime == r for s in scores)}
+    kept = [s for s in scores if s.trusted is not False]
+    trusted = {q: _block([s for s in kept if s.quantity == q], levels)
+               for q in quantities if any(s.quantity == q for s in kept)}
     criteria = {}
     for q, b in quantities.items():
         c90, mz = b["coverage"]["90"], b["mean_z"]
@@ -298,7 +316,9 @@ def coverage_summary(scores: list[Score], levels: Sequence[float] = LEVELS) -> d
         bias_ok = mz is not None and abs(mz) < MAX_ABS_MEAN_Z
         criteria[q] = {"coverage_90_ok": cov_ok, "bias_ok": bias_ok, "passed": cov_ok and bias_ok}
     return {"levels": list(levels), "quantities": quantities, "media": media,
-            "regimes": regimes, "regime_definition": {
+            "regimes": regimes, "trusted": trusted,
+            "n_untrusted_scores": sum(s.trusted is False for s in scores),
+            "regime_definition": {
                 "optical_depth": "tank kappa_t x distance from the light to the front wall",
                 "thin": f"every image below {INFORMATIVE_OPTICAL_DEPTH[0]:g}",
                 "dense": f"every image above {INFORMATIVE_OPTICAL_DEPTH[1]:g}",
@@ -324,10 +344,15 @@ def write_coverage(out: Path, rounds: list[dict], scores: list[Score]) -> Valida
             "informative": f"{lo:g}-{hi:g}"}
     for r, blocks in summary["regimes"].items():
         lines += ["", f"regime {r} ({what[r]}):", _table(blocks, LEVELS)]
+    if summary["n_untrusted_scores"]:
+        lines += ["", f"only the fits that exited 0 (trust.ok; {summary['n_untrusted_scores']} of "
+                  f"{len(scores)} scores are from fits that said their values cannot be "
+                  "trusted, exit 1):",
+                  _table(summary["trusted"], LEVELS) if summary["trusted"] else "(none)"]
     lines += ["", (f"criteria: 90 % intervals cover in {COVERAGE_90_RANGE[0]:.0%}-"
                    f"{COVERAGE_90_RANGE[1]:.0%} of the scores and |mean z| < {MAX_ABS_MEAN_Z}")]
     for q, c in summary["criteria"].items():
-        lines.append(f"  {q:10s} {'pass' if c['passed'] else 'FAIL'}"
+        lines.append(f"  {q:15s} {'pass' if c['passed'] else 'FAIL'}"
                      + ("" if c["coverage_90_ok"] else "  (90 % coverage out of range)")
                      + ("" if c["bias_ok"] else "  (|mean z| too large)"))
     lines += [f"  round {r['index']} ({r['medium']}): {r['error']}" for r in failed + skipped]
@@ -342,12 +367,13 @@ def write_coverage(out: Path, rounds: list[dict], scores: list[Score]) -> Valida
 
 def _coverage_figure(rounds: list[dict]):
     """Top: histogram of the truth's posterior quantile (PIT; uniform if calibrated) per
-    quantity, with the ±2σ Poisson band.  Bottom: z per round, coloured by channel."""
+    quantity, with the ±2σ Poisson band.  Bottom: z per round, coloured by channel; open
+    markers for fits that said their values cannot be trusted (exit 1)."""
     from matplotlib.ticker import MaxNLocator
 
     from .report.plots import new_figure
 
-    fig = new_figure(11.0, 6.0)
+    fig = new_figure(3.2 * len(SCORED), 6.0)
     axes = fig.subplots(2, len(SCORED), squeeze=False)
     for k, q in enumerate(SCORED):
         sel = [(r["index"], Score.from_record(s)) for r in rounds for s in r.get("scores", [])
@@ -357,11 +383,15 @@ def _coverage_figure(rounds: list[dict]):
         top.axhline(per_bin, color="k", ls="--", lw=0.8)
         top.axhspan(max(per_bin - 2 * np.sqrt(per_bin), 0), per_bin + 2 * np.sqrt(per_bin),
                     color="k", alpha=0.1)
-        top.set_title(f"{q}: truth's posterior quantile (n = {len(sel)})", fontsize=9)
+        top.set_title(f"{q} (n = {len(sel)}):\ntruth's posterior quantile", fontsize=9)
         top.set(xlabel="PIT (unitless)", ylabel="scores per bin", ylim=(0, None))
         for ch, colour in {"R": "tab:red", "G": "tab:green", "B": "tab:blue"}.items():
-            x, z = [i for i, s in sel if s.channel == ch], [s.z for _, s in sel if s.channel == ch]
-            bottom.plot(x, np.clip(z, -10, 10), "o", ms=3, color=colour, label=ch)
+            for ok, face, tag in ((True, colour, ""), (False, "none", " (exit 1)")):
+                pts = [(i, s.z) for i, s in sel if s.channel == ch and (s.trusted is not False) == ok]
+                if pts or ok:
+                    x, z = zip(*pts) if pts else ((), ())
+                    bottom.plot(x, np.clip(z, -10, 10), "o", ms=3, color=colour, mfc=face,
+                                label=ch + tag)
         for y in (-2, -1, 0, 1, 2):
             bottom.axhline(y, color="0.5", ls="-" if y == 0 else ":", lw=0.8)
         bottom.set(xlabel="round", ylabel="z = (median - truth) / std (clipped ±10)")

@@ -63,7 +63,7 @@ def test_dask_local_cluster_gives_the_serial_results(serial_run, geometry, tmp_p
     res = validate(MEDIA, 2, tmp_path, geometry=geometry, seed=7, scheduler=None, n_workers=2,
                    options=OPTIONS, optical_depth=OPTICAL_DEPTH)
     assert [r["status"] for r in res.rounds] == ["done", "done"]
-    assert len(res.scores) == 2 * 3 * 3  # rounds x channels x (kappa_s, kappa_t, g)
+    assert len(res.scores) == 2 * 3 * 4  # rounds x channels x (kappa_s, kappa_t, g, kappa_s')
     assert _key(res.scores) == _key(serial.scores)
     assert res.coverage["quantities"] == serial.coverage["quantities"]
     for f in ("coverage.json", "coverage.txt", "coverage.png"):
@@ -74,7 +74,7 @@ def test_dask_local_cluster_gives_the_serial_results(serial_run, geometry, tmp_p
 def test_serial_run_files(serial_run):
     out, res = serial_run
     cov = json.loads((out / "coverage.json").read_text())
-    assert set(cov["quantities"]) == {"kappa_s", "kappa_t", "g"}
+    assert set(cov["quantities"]) == {"kappa_s", "kappa_t", "g", "kappa_s_reduced"}
     assert set(cov["media"]) == set(MEDIA)
     for q in cov["quantities"].values():
         assert q["n"] == 6 and set(q["coverage"]) == {"68", "90", "99"}
@@ -137,18 +137,22 @@ def test_rounds_from_before_the_synthesis_model_was_recorded(serial_run, geometr
                  optical_depth=OPTICAL_DEPTH, synth_model="hybrid")
 
 
-def test_rounds_scored_without_optical_depth_are_scored_again(serial_run, geometry, tmp_path,
-                                                               monkeypatch):
-    """A finished round whose round.json predates the optical depth (no ``optical_depth`` in
-    its scores) is scored again from its files, not refitted: same scores, the optical depth
-    as a fresh run computes it, and round.json updated."""
+@pytest.mark.parametrize("missing", ["optical_depth", "trusted", "kappa_s_reduced"])
+def test_rounds_scored_without_a_later_field_are_scored_again(serial_run, geometry, tmp_path,
+                                                              monkeypatch, missing):
+    """A finished round whose round.json predates the optical depth, the fit's trust or the
+    kappa_s' score is scored again from its files, not refitted: same scores, the new
+    field as a fresh run computes it, and round.json updated."""
     src, first = serial_run
     out = tmp_path / "old"
     shutil.copytree(src, out)
     path = out / "round_0000" / "round.json"
     rec = json.loads(path.read_text())
-    for sc in rec["scores"]:
-        del sc["optical_depth"]
+    if missing == "kappa_s_reduced":
+        rec["scores"] = [sc for sc in rec["scores"] if sc["quantity"] != missing]
+    else:
+        for sc in rec["scores"]:
+            del sc[missing]
     path.write_text(json.dumps(rec))
 
     def no_fit(*args, **kwargs):
@@ -160,8 +164,30 @@ def test_rounds_scored_without_optical_depth_are_scored_again(serial_run, geomet
     assert _key(res.scores) == _key(first.scores)
     assert [s.optical_depth for s in res.scores] == [s.optical_depth for s in first.scores]
     assert all(s.optical_depth and s.regime for s in res.scores)
-    assert all(sc["optical_depth"] for sc in json.loads(path.read_text())["scores"])
+    assert [s.trusted for s in res.scores] == [s.trusted for s in first.scores]
+    assert all(isinstance(s.trusted, bool) for s in res.scores)
+    stored = json.loads(path.read_text())["scores"]
+    assert all(sc["optical_depth"] and "trusted" in sc for sc in stored)
+    assert sum(sc["quantity"] == "kappa_s_reduced" for sc in stored) == 3
     assert "regime" in res.table
+
+
+def test_reduced_scattering_score_from_the_samples(serial_run):
+    """The kappa_s' score against kappa_s (1 - g) recomputed here from samples.npz and the
+    truth (an independent recomputation of the same definition); its trust is results.json's."""
+    out, res = serial_run
+    fit = out / "round_0000" / "fit"
+    trust = json.loads((fit / "results.json").read_text())["trust"]["ok"]
+    rnd = [s for s in res.scores if s.medium == res.rounds[0]["medium"]]
+    with np.load(fit / "samples.npz") as smp:
+        for s in (s for s in rnd if s.quantity == "kappa_s_reduced"):
+            ks = {q: next(x for x in rnd if x.channel == s.channel and x.quantity == q).truth
+                  for q in ("kappa_s", "g")}
+            red = smp[f"{s.channel}/kappa_s"] * (1 - smp[f"{s.channel}/g"])
+            assert s.truth == pytest.approx(ks["kappa_s"] * (1 - ks["g"]), rel=1e-12)
+            assert s.median == pytest.approx(float(np.median(red)), rel=1e-12)
+            assert s.pit == pytest.approx(float(np.mean(red < s.truth)), abs=1e-12)
+    assert all(s.trusted is trust for s in rnd)
 
 
 def test_round_seeds_depend_on_seed_and_index_only():
@@ -353,6 +379,12 @@ def test_coverage_summary_criteria():
     assert abs(cg["quantities"]["kappa_s"]["coverage"]["90"] - 0.9) < 0.05
     cb = coverage_summary(bad)
     assert not cb["passed"] and not cb["criteria"]["kappa_s"]["bias_ok"]
+    # the trusted block: the calibrated scores' coverage when the biased ones said "exit 1"
+    mixed = good + [replace(s, trusted=False) for s in bad]
+    cm = coverage_summary(mixed)
+    assert cm["n_untrusted_scores"] == len(bad)
+    assert cm["trusted"]["kappa_s"] == cg["quantities"]["kappa_s"]
+    assert cm["quantities"]["kappa_s"]["n"] == len(mixed)
 
 
 def test_z_is_the_pit_normal_score():
