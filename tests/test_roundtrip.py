@@ -25,7 +25,9 @@ def grid_scores(seed: int, out_dir) -> list:
         scores += round_trip(geometry, medium_by_name(name), [ml], out_dir / f"r{k}",
                              seed=seed + k,
                              options=FitOptions(seed=seed + k, progress=False, workers=2))
-    return scores
+    # the grid's 45 values and their documented pass rates are kappa_s, kappa_t and g;
+    # kappa_s' (scored since 2026-12-02) is a function of two of them
+    return [s for s in scores if s.quantity in ("kappa_s", "kappa_t", "g")]
 
 
 # ~610 s wall on 2 cores, a third of CI's 30-minute budget: run by `make test-calibration`, not
