@@ -63,7 +63,8 @@ def _variant(prob, o, spec, t, ch, b):
 def main():
     cap = Path(sys.argv[1])
     n_paths = int(sys.argv[2]) if len(sys.argv) > 2 else 256
-    seeds = range(11, 11 + (int(sys.argv[3]) if len(sys.argv) > 3 else 8))
+    first = int(os.environ.get("STUDY_SEED0", 11))  # the capture's own seed: its very term
+    seeds = range(first, first + (int(sys.argv[3]) if len(sys.argv) > 3 else 8))
     spec, ch, _, b, space, prob = problem(cap)
     t = json.loads((cap / "truth.json").read_text())["undiluted"]
     xt = space.to_vector(ChannelParams(t["kappa_t"][ch], t["albedo"][ch], t["g"][ch], b))
