@@ -256,6 +256,9 @@ def add_export_parser(sub) -> None:
     p.add_argument("dir", help="a fit's output folder (reads results.json, writes beside it)")
     p.add_argument("--scale-to-m", action="store_true",
                    help="coefficients in 1/m for a scene in metres (default 1/mm)")
+    p.add_argument("--allow-doubtful", action="store_true",
+                   help="export a fit that said its values cannot be trusted (exit 1 from fit): "
+                        "the files then say so, and export exits 1 too")
     p.set_defaults(func=cmd_export)
 
 
@@ -290,14 +293,21 @@ def cmd_preview(a) -> int:
 
 
 def cmd_export(a) -> int:
-    from .export import export_medium, read_results
+    from .export import doubts, export_medium, read_results
     from .util import check_output_dir
 
     results = read_results(a.dir)
+    reasons = doubts(results)
+    for r in reasons:
+        print(f"fitmedia: doubtful result: {r}", file=sys.stderr)
+    if reasons and not a.allow_doubtful:
+        print(f"fitmedia: export refused: the fit in {a.dir} said its values cannot be trusted "
+              "(above); --allow-doubtful writes them anyway, marked as such", file=sys.stderr)
+        return 1
     check_output_dir(a.dir, "DIR")  # the exports are written beside results.json
     paths = export_medium(results, a.dir, scale_to_m=a.scale_to_m)
-    print("wrote " + ", ".join(str(p) for p in paths))
-    return 0
+    print("wrote " + ", ".join(str(p) for p in paths) + (" (marked DOUBTFUL)" if reasons else ""))
+    return 1 if reasons else 0
 
 
 # long: one add_argument per option of the subcommands synth, fit, report, demo, doctor, slab

@@ -54,7 +54,8 @@ def medium_values(results: Mapping, *, scale_to_m: bool = False) -> dict:
     dict
         ``sigma_t``, ``albedo``, ``sigma_a``, ``sigma_s``, ``g`` (lists of 3, R G B; the
         coefficients in ``unit``), ``g_mean``, ``statistic`` (``"median"`` or ``"map"``),
-        ``unit`` (``"1/mm"`` or ``"1/m"``), ``name``.
+        ``unit`` (``"1/mm"`` or ``"1/m"``), ``name``, ``doubts`` (:func:`doubts`: why the
+        fit said its values cannot be trusted; empty when it did not).
     """
     if not isinstance(results, Mapping) or not isinstance(results.get("parameters"), dict):
         raise InputError("results.json: parameters: missing; expected the output of fitmedia fit")
@@ -89,14 +90,24 @@ def medium_values(results: Mapping, *, scale_to_m: bool = False) -> dict:
     return {"sigma_t": kt, "albedo": alb, "sigma_a": [t * (1 - a) for t, a in zip(kt, alb)],
             "sigma_s": [t * a for t, a in zip(kt, alb)], "g": g, "g_mean": sum(g) / len(g),
             "statistic": stat, "unit": "1/m" if scale_to_m else "1/mm",
-            "name": f"fitmedia_{name or 'medium'}"}
+            "name": f"fitmedia_{name or 'medium'}", "doubts": doubts(results)}
+
+
+def doubts(results: Mapping) -> list[str]:
+    """The reasons for which the fit said its values cannot be trusted (results.json's
+    ``trust``: ``ok`` false); empty for a trusted fit or one from before the verdict."""
+    trust = results.get("trust") or {}
+    if trust.get("ok", True):
+        return []
+    return list(trust.get("reasons") or ["results.json: trust.ok is false"])
 
 
 def _header(v: dict) -> list[str]:
     length = "m" if v["unit"] == "1/m" else "mm"
     stat = "posterior median" if v["statistic"] == "median" else "MAP (no posterior samples)"
     g = ", ".join(f"{c} {x:.4f}" for c, x in zip(CHANNELS, v["g"]))
-    return [f"fitmedia export: {v['name']}, homogeneous medium, {stat} of results.json",
+    warn = [f"DOUBTFUL: the fit said these values cannot be trusted: {r}" for r in v["doubts"]]
+    return warn + [f"fitmedia export: {v['name']}, homogeneous medium, {stat} of results.json",
             f"units: scene length unit {length}; coefficients in {v['unit']}",
             ("concentration: undiluted liquid (1); to render a dilution c (ml liquid / ml water) "
              "set scale = c"),
@@ -157,7 +168,8 @@ def export_medium(results: Mapping, out_dir: str | Path, *, scale_to_m: bool = F
         A fit or its results.json dict (undiluted liquid, 1/mm).
     out_dir : str or Path
         Receives ``medium_mitsuba.json`` (``{"medium": <mi.load_dict input>, ...}`` with the
-        units, the statistic and the per-channel g beside it), ``medium_mitsuba.xml`` (a
+        units, the statistic, the per-channel g and ``trusted`` beside it; a doubtful fit's
+        reasons open every file's comment), ``medium_mitsuba.xml`` (a
         ``<medium>`` element for a scene file) and ``medium_pbrt.txt`` (a
         ``MakeNamedMedium`` block), each written atomically.
     scale_to_m : bool
@@ -171,7 +183,8 @@ def export_medium(results: Mapping, out_dir: str | Path, *, scale_to_m: bool = F
     v = medium_values(results, scale_to_m=scale_to_m)
     out = Path(out_dir)
     paths = [out / f for f in FILES]
-    doc = {"comment": _header(v), "unit": v["unit"], "statistic": v["statistic"],
+    doc = {"comment": _header(v), "trusted": not v["doubts"], "unit": v["unit"],
+           "statistic": v["statistic"],
            "concentration": 1.0, "g_per_channel": dict(zip(CHANNELS, v["g"])),
            "sigma_a": v["sigma_a"], "sigma_s": v["sigma_s"],
            "load": "mi.load_dict(json.load(open(path))['medium'])", "medium": mitsuba_dict(v)}

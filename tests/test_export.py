@@ -13,7 +13,7 @@ import pytest
 
 from fitmedia.errors import InputError
 from fitmedia.cli import add_export_parser
-from fitmedia.export import export_medium, medium_values
+from fitmedia.export import FILES, export_medium, medium_values
 
 CH = ("R", "G", "B")
 # Lowfat Milk-like values (1/mm, undiluted): kappa_t, albedo, g per channel
@@ -153,3 +153,34 @@ def test_mitsuba_loads_the_dict_and_the_xml(tmp_path):
     assert float(params["scale"]) == 1.0
     scene = mi.load_string(f'<scene version="3.0.0">{xml_path.read_text()}</scene>')
     assert scene is not None
+
+
+def test_doubtful_fit_is_not_exported_silently(tmp_path, capsys):
+    """A fit that said its values cannot be trusted (trust.ok false, exit 1 from fit) is not
+    exported without --allow-doubtful (exit 1, nothing written, the reason printed); with it
+    the files carry the reason and ``trusted: false`` and export exits 1 too.  A trusted fit
+    exports as before (exit 0, ``trusted: true``, no DOUBTFUL line)."""
+    reason = "the misfit guard fired in channel G: chi2/pixel 39"
+    (tmp_path / "results.json").write_text(json.dumps(
+        {**results(), "trust": {"ok": False, "model": "single", "reasons": [reason]}}))
+    assert _cli(["export", tmp_path]) == 1
+    err = capsys.readouterr().err
+    assert reason in err and "export refused" in err and "--allow-doubtful" in err
+    assert not any((tmp_path / f).exists() for f in FILES)
+
+    assert _cli(["export", tmp_path, "--allow-doubtful"]) == 1
+    assert "marked DOUBTFUL" in capsys.readouterr().out
+    doc = json.loads((tmp_path / "medium_mitsuba.json").read_text())
+    assert doc["trusted"] is False and reason in doc["comment"][0]
+    for f in FILES[1:]:
+        assert f"DOUBTFUL: the fit said these values cannot be trusted: {reason}" in \
+            (tmp_path / f).read_text()
+    ET.fromstring((tmp_path / FILES[1]).read_text())  # the comment keeps the XML well formed
+
+    good = tmp_path / "good"
+    good.mkdir()
+    (good / "results.json").write_text(json.dumps(
+        {**results(), "trust": {"ok": True, "model": "single", "reasons": []}}))
+    assert _cli(["export", good]) == 0
+    assert json.loads((good / "medium_mitsuba.json").read_text())["trusted"] is True
+    assert "DOUBTFUL" not in (good / "medium_pbrt.txt").read_text()
