@@ -290,3 +290,28 @@ def test_report_multiple_scattering_table_and_full_model_causes(fit_outputs, tmp
     assert "{" not in ms and "{'share'" not in text  # no raw dict anywhere
     box = text[text.index('class="untrusted"'):text.index("<h2>Estimates</h2>")]
     assert "Monte Carlo error" in box and "--model full" not in box
+
+
+def test_residual_panel_uses_the_fits_own_variance(fit_outputs, tmp_path):
+    """The residual panel's chi2/pixel, from fit_images.npz's var_0 (the likelihood's variance
+    per pixel), equals results.json's chi2_per_pixel (computed by the fit's likelihood, a
+    separate code path) per channel; a fit written before var_ existed falls back to the
+    scalar noise model and the caption says which sigma is used."""
+    from fitmedia.report.plots import image_figure
+
+    out = _copy(fit_outputs["map"], tmp_path / "fit")
+    results = json.loads((out / "results.json").read_text())
+    z = dict(np.load(out / "fit_images.npz"))
+    assert z["var_0"].shape == z["data_0"].shape
+    assert np.all(np.isnan(z["var_0"]) == ~z["valid_0"].astype(bool))
+    noise = results["noise"]["per_channel"]
+    _, chi2 = image_figure(z["data_0"], z["model_0"], z["valid_0"].astype(bool),
+                           ["R", "G", "B"], noise, "t", var=z["var_0"])
+    for ch in "RGB":
+        assert chi2[ch] == pytest.approx(
+            results["diagnostics"]["channels"][ch]["chi2_per_pixel"], rel=1e-9)
+    assert "the fit's own variance of each pixel" in write_report(out).read_text(encoding="ascii")
+    del z["var_0"]
+    np.savez(out / "fit_images.npz", **z)
+    assert "&sigma;&sup2; = gain&middot;model + read_var" in \
+        write_report(out).read_text(encoding="ascii")

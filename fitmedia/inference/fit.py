@@ -281,6 +281,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
            "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
            "chi2_images": problem.chi2_images(res.x),
            "valid_images": [o.valid for o in problem.obs],
+           "var_images": problem.variance_images(res.x),
            "free_brightness": setup.free, "space": space, "other_g_mode": other_mode, **transport}
     if options.mcmc:
         out.update(_sample_channel(problem, space, res, alt, other_mode, options, rng,

@@ -171,6 +171,16 @@ class ChannelProblem:
             out.append((float(np.sum((o.values - m) ** 2 / self.variance(k, m))), len(m)))
         return out
 
+    def variance_images(self, u: np.ndarray) -> list[np.ndarray]:
+        """Per image (H, W): the likelihood's variance at the model for ``u`` (camera noise per
+        pixel plus the forward model's Monte Carlo variance); NaN at pixels the fit does not use."""
+        out = []
+        for k, (o, img) in enumerate(zip(self.obs, self.render(u))):
+            v = np.full(img.size, np.nan)
+            v[o.flat_idx] = self.variance(k, img.ravel()[o.flat_idx])
+            out.append(v.reshape(img.shape))
+        return out
+
     def chi2(self, u: np.ndarray) -> tuple[float, int]:
         """Sum of squared standardised residuals over all images and the number of pixels."""
         per = self.chi2_images(u)

@@ -243,6 +243,8 @@ def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], result: 
                                        else im.valid[..., CHANNELS.index(c)]
                                        for c in spec.channels], -1)
         imgs[f"model_{i}"] = np.stack([fits[c]["model_images"][i] for c in spec.channels], -1)
+        if all("var_images" in fits[c] for c in spec.channels):  # the likelihood's variance
+            imgs[f"var_{i}"] = np.stack([fits[c]["var_images"][i] for c in spec.channels], -1)
         if all("ms_images" in fits[c] for c in spec.channels):  # the multiple-scattering part
             imgs[f"ms_{i}"] = np.stack([fits[c]["ms_images"][i] for c in spec.channels], -1)
     imgs["channels"] = np.array(spec.channels)

@@ -519,8 +519,13 @@ def _images_section(results: dict, images: dict[str, np.ndarray]) -> str:
              + ("; the model's single- and multiple-scattering parts beside it"
                 if any(k.startswith("ms_") for k in images) else
                 " (this model gives no separate multiple-scattering part)")
-             + "; residual (data &minus; model)/&sigma; with &sigma;&sup2; = gain&middot;model + "
-             "read_var, scale fixed at &plusmn;5. Grey: pixels not used in the fit.</p>\n"]
+             + "; residual (data &minus; model)/&sigma; with "
+             + ("&sigma;&sup2; the fit's own variance of each pixel (camera noise at the model"
+                + (", plus the multiple-scattering term's Monte Carlo variance"
+                   if any(k.startswith("ms_") for k in images) else "") + ")"
+                if any(k.startswith("var_") for k in images) else
+                "&sigma;&sup2; = gain&middot;model + read_var")
+             + ", scale fixed at &plusmn;5. Grey: pixels not used in the fit.</p>\n"]
     for i, uri in fit_image_plots(results, images):
         parts.append(f'<img alt="data, model and residual of image {i}" src="{uri}">\n' if uri
                      else f"<p class='bad'>Image {i}: fit_images.npz lacks its data, model or "

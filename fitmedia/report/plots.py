@@ -210,8 +210,8 @@ def standardised_residual(data: np.ndarray, model: np.ndarray, gain: float, read
 
 
 def image_figure(data: np.ndarray, model: np.ndarray, valid: np.ndarray, channels: list[str],
-                 noise: dict[str, dict], title: str, ms: np.ndarray | None = None
-                 ) -> tuple[Figure, dict[str, float]]:
+                 noise: dict[str, dict], title: str, ms: np.ndarray | None = None,
+                 var: np.ndarray | None = None) -> tuple[Figure, dict[str, float]]:
     """Data, model and standardised residual of one image, one row per channel; with ``ms``
     also the model's single- and multiple-scattering parts (model - ms and ms).
 
@@ -229,6 +229,9 @@ def image_figure(data: np.ndarray, model: np.ndarray, valid: np.ndarray, channel
         Figure title.
     ms : ndarray of shape (H, W, C), optional
         The multiple-scattering part of ``model`` (fit_images.npz ``ms_{i}``).
+    var : ndarray of shape (H, W, C), optional
+        The fit's own variance per pixel (fit_images.npz ``var_{i}``: camera noise per pixel
+        plus a Monte Carlo model's variance); without it, ``noise``'s scalar model.
 
     Returns
     -------
@@ -255,7 +258,11 @@ def image_figure(data: np.ndarray, model: np.ndarray, valid: np.ndarray, channel
         norm = LogNorm(vmin=vmin, vmax=vmax, clip=True)
         nz = noise.get(ch, {})
         gain, read_var = float(nz.get("gain", np.nan)), float(nz.get("read_var", np.nan))
-        r = standardised_residual(d, m, gain, read_var)
+        if var is None:
+            r = standardised_residual(d, m, gain, read_var)
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = (d - m) / np.sqrt(var[..., k])
         rv = r[v & np.isfinite(r)]
         chi2[ch] = float(np.mean(rv**2)) if rv.size else float("nan")
         n_bad = int(np.sum(~v))
@@ -369,7 +376,9 @@ def fit_image_plots(results: dict, images: dict[str, np.ndarray]) -> list[tuple[
     images : dict of str to ndarray
         fit_images.npz: ``data_{i}``, ``model_{i}``, ``valid_{i}`` of shape (H, W, C) and
         ``channels``; optionally ``ms_{i}``, the multiple-scattering part of ``model_{i}``
-        (a model that has one), shown beside it with the single-scattering part.
+        (a model that has one), shown beside it with the single-scattering part, and
+        ``var_{i}``, the fit's variance per pixel (the residual's sigma^2; fits written
+        before 2026-12-02 lack it and get results.json's scalar noise model).
 
     Returns
     -------
@@ -388,6 +397,7 @@ def fit_image_plots(results: dict, images: dict[str, np.ndarray]) -> list[tuple[
         conc = finite_or_none(info[i].get("concentration")) if i < len(info) else None
         title = f"Image {i}" + ("" if conc is None else f" (concentration {conc:.4g})")
         fig, _ = image_figure(images[keys[0]], images[keys[1]], images[keys[2]].astype(bool),
-                              chans, noise, title, ms=images.get(f"ms_{i}"))
+                              chans, noise, title, ms=images.get(f"ms_{i}"),
+                              var=images.get(f"var_{i}"))
         out.append((i, figure_to_data_uri(fig)))
     return out
