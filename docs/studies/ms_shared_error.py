@@ -32,7 +32,9 @@ from ms_realisation import problem  # docs/studies/ is on sys.path when this fil
 def _variant(prob, o, spec, t, ch, b):
     """STUDY_VAR=zero: no term variance in the likelihood; =smooth: the term's relative
     variance pooled over the glow times the square of the term smoothed (sigma 2 px), so that
-    a pixel's weight does not follow its own realisation."""
+    a pixel's weight does not follow its own realisation; =noderiv: the term held at its value
+    at the truth; =drefN: the finite differences from an independent trace at N paths (nearly
+    exact derivatives), the term itself from the seed's."""
     import os
 
     from scipy import ndimage
@@ -45,6 +47,24 @@ def _variant(prob, o, spec, t, ch, b):
             if loc is not None:
                 loc["d_kt"] = 0 * loc["d_kt"]
                 loc["d_g"] = 0 * loc["d_g"]
+        return
+    if mode.startswith("dref"):  # derivatives from an independent trace at many paths
+        ref = FullTransport(spec, 0, channels=(ch,), seed=999, bin=1, n_paths=int(mode[4:]),
+                            single=o.model.single)
+        ci = F.CHANNELS.index(ch)
+        c = spec.images[0].concentration
+        ref.refresh([c * t["kappa_a"][ch] + spec.water_kappa_a[ci]], [c * t["kappa_s"][ch]],
+                    [t["g"][ch]], [b])
+        for loc, r in zip(o.model._local, ref._local):
+            k = min(loc["batches"].shape[1], r["d_kt"].shape[1])
+            for name in ("d_kt", "d_g"):
+                new = np.zeros_like(loc[name])
+                new[:, :k] = r[name][:, :k]
+                loc[name] = new
+        # the likelihood's term variance again, from the local model with these derivatives
+        _, var = o.model.ms_part([c * t["kappa_a"][ch] + spec.water_kappa_a[ci]],
+                                 [c * t["kappa_s"][ch]], [t["g"][ch]], [b])
+        prob._model_var[0] = var[..., 0].ravel()[o.flat_idx] * o.model.ms.bin ** 2
         return
     if mode == "zero":
         prob._model_var[0] = 0.0
