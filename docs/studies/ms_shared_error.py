@@ -99,6 +99,7 @@ def main():
         prob.refresh_models(xt)
         prob.adapt(xt)
         _variant(prob, o, spec, t, ch, b)
+        prob.robust = bool(os.environ.get("STUDY_ROBUST"))  # Student-t, as fit --robust
         c2, n = prob.chi2(xt)
         r = find_map(prob.log_posterior, xt, space.lower, space.upper, global_evals=0)
         jk = term_jackknife(prob, r)
