@@ -34,7 +34,7 @@ def _variant(prob, o, spec, t, ch, b):
     variance pooled over the glow times the square of the term smoothed (sigma 2 px), so that
     a pixel's weight does not follow its own realisation; =noderiv: the term held at its value
     at the truth; =drefN: the finite differences from an independent trace at N paths (nearly
-    exact derivatives), the term itself from the seed's."""
+    exact derivatives), the term itself from the seed's; =drefN+zero: both."""
     import os
 
     from scipy import ndimage
@@ -49,7 +49,8 @@ def _variant(prob, o, spec, t, ch, b):
                 loc["d_g"] = 0 * loc["d_g"]
         return
     if mode.startswith("dref"):  # derivatives from an independent trace at many paths
-        ref = FullTransport(spec, 0, channels=(ch,), seed=999, bin=1, n_paths=int(mode[4:]),
+        n_ref, _, then = mode[4:].partition("+")  # e.g. dref4096+zero
+        ref = FullTransport(spec, 0, channels=(ch,), seed=999, bin=1, n_paths=int(n_ref),
                             single=o.model.single)
         ci = F.CHANNELS.index(ch)
         c = spec.images[0].concentration
@@ -65,7 +66,9 @@ def _variant(prob, o, spec, t, ch, b):
         _, var = o.model.ms_part([c * t["kappa_a"][ch] + spec.water_kappa_a[ci]],
                                  [c * t["kappa_s"][ch]], [t["g"][ch]], [b])
         prob._model_var[0] = var[..., 0].ravel()[o.flat_idx] * o.model.ms.bin ** 2
-        return
+        mode = then
+        if not mode:
+            return
     if mode == "zero":
         prob._model_var[0] = 0.0
         return
