@@ -117,6 +117,12 @@ SEED_SHIFT_Z = 3.0
 #: a second full-transport fit started beyond the MAP (inference/full.py: restart_shift) that
 #: ends more than this many sd (Laplace plus the term's jackknife) away: two fixed points
 RESTART_SD = 3.0
+#: the last refreshes, at 16 times the paths (inference/full.py: more_paths), that moved the
+#: values by more than this many sd (Laplace plus the term's jackknife, at the end): the
+#: offset that the term's noise gives the values falls with the paths roughly as 1/sqrt(paths)
+#: to 1/paths^(1/3) (docs/inference.md), so up to two thirds of that move may remain, and
+#: more than about one sd of it is an error the intervals do not show
+FINAL_MOVE_SD = 1.5
 #: with the full model, an optimum with g of the other sign within this many log-posterior
 #: units leaves the sign of g undetermined: the single model's bound for sampling both modes
 #: (the full model has no two-mode sampler)
@@ -155,6 +161,15 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"away (kappa_t {second.get('kappa_t', float('nan')):.4g}, g "
                 f"{second.get('g', float('nan')):.3g}): the images do not decide between the two, "
                 f"and the values of channel {ch} are not determined to within their intervals")
+        final = ms.get("final_move_sd")
+        if final is not None and not final <= FINAL_MOVE_SD:
+            move = ms.get("final_move") or {}
+            reasons.append(
+                f"tracing the multiple-scattering term with {ms.get('final_paths')} paths per "
+                f"sample pixel moved the values of channel {ch} by {final:.2g} sd (kappa_t "
+                f"{100 * move.get('kappa_t', float('nan')):+.1f} %, g {move.get('g', float('nan')):+.3f}): "
+                "the offset the term's own noise gives them may not be gone, and their intervals "
+                "do not include it")
         shift = ms.get("seed_shift_sd")
         if shift is None:
             continue

@@ -104,8 +104,10 @@ def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understa
     """trust.transport_reasons in plain words: a restart that ended beyond RESTART_SD names the
     other values; a seed shift beyond SEED_SHIFT_Z (with the jackknife's term_sd present) says
     the intervals understate the term's error; an optimum with g of the other sign within
-    OTHER_G_DELTA says the sign of g is not determined; within the bounds nothing is said."""
-    from fitmedia.trust import OTHER_G_DELTA, RESTART_SD, SEED_SHIFT_Z, transport_reasons
+    OTHER_G_DELTA says the sign of g is not determined; a move of the last refreshes (more
+    paths) beyond FINAL_MOVE_SD says the offset may remain; within the bounds nothing is said."""
+    from fitmedia.trust import (FINAL_MOVE_SD, OTHER_G_DELTA, RESTART_SD, SEED_SHIFT_Z,
+                                transport_reasons)
 
     base = {"refreshes": 3, "converged": True, "moves_sd": [2.0, 0.05],
             "term_sd": {"log_kappa_t": 0.01}, "seed_shift_sd": 0.5, "restart_shift_sd": 0.4,
@@ -126,6 +128,14 @@ def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understa
     far = {**base, "other_g_mode": {"g": -0.91, "kappa_t": 9.1,
                                     "delta_log_posterior": -OTHER_G_DELTA - 1.0}}
     assert transport_reasons({"R": {"multiple_scattering": far}}) == []
+    # the last refreshes at more paths moved the values beyond FINAL_MOVE_SD: said, with the move
+    last = {**base, "final_paths": 4096, "final_move": {"kappa_t": 0.052, "g": 0.021},
+            "final_move_sd": FINAL_MOVE_SD + 1.0}
+    (reason,) = transport_reasons({"G": {"multiple_scattering": last}})
+    assert "4096 paths per sample pixel moved the values of channel G by 2.5 sd" in reason \
+        and "kappa_t +5.2 %, g +0.021" in reason and "may not be gone" in reason
+    within = {**last, "final_move_sd": FINAL_MOVE_SD - 0.1}
+    assert transport_reasons({"G": {"multiple_scattering": within}}) == []
 
 
 def _fit(spec: Path, out: Path, *extra: str) -> tuple[int, dict]:

@@ -435,8 +435,8 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     single-scattering optimum with g of the other sign, if one was found; it is refined with
     the full model too and the better of the two kept (``full_other_g_mode`` the other).
     Returns the MAP and the fields of ``fit_channel``'s result that say what was used."""
-    from .full import (AUTO_SHARE, ms_images, ms_share, refine_map, restart_shift, seed_shift,
-                       term_jackknife, use_full_transport)
+    from .full import (AUTO_SHARE, distance_sd, more_paths, ms_images, ms_share, refine_map,
+                       restart_shift, seed_shift, term_jackknife, use_full_transport)
 
     # the term's random numbers: streams of their own, so the chains' draws do not move
     ms_seed, check_seed = (int(s) for s in np.random.default_rng(
@@ -461,18 +461,27 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
             problem.adapt(res.x)
         other_g = {"g": float(np.tanh(alt_full.x[2])), "kappa_t": float(np.exp(alt_full.x[0])),
                    "delta_log_posterior": float(lp_alt - lp_res)}
-    share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
+    # the checks on the loop's fixed point, at the loop's paths
     term_cov = term_jackknife(problem, res)
     restart_sd, restart_x = restart_shift(problem, space, res, single_x, term_cov)
     other = space.to_params(restart_x)
+    shift = seed_shift(problem, space, res, spec, channel, seed=check_seed, term_cov=term_cov)
+    # then the last refreshes with more paths, and the values and their term error from there
+    loop_x = res.x
+    res, last, paths = more_paths(problem, space, res)
+    term_cov = term_jackknife(problem, res)
+    share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
     out.update(model_used="full", ms_share=share, ms_share_se=share_se,
-               full_refreshes=info.refreshes, full_moves_sd=info.moves_sd,
-               full_moves_term=info.moves_term,
-               full_converged=info.converged, ms_term_cov=term_cov,
+               full_refreshes=info.refreshes + last.refreshes,
+               full_moves_sd=info.moves_sd + last.moves_sd,
+               full_moves_term=info.moves_term + last.moves_term,
+               full_converged=info.converged and last.converged, ms_term_cov=term_cov,
                ms_restart_shift_sd=restart_sd,
                ms_restart_values={"kappa_t": float(other.kappa_t), "g": float(other.g)},
-               ms_seed_shift_sd=seed_shift(problem, space, res, spec, channel, seed=check_seed,
-                                           term_cov=term_cov),
+               ms_seed_shift_sd=shift, ms_final_paths=paths,
+               ms_final_move_sd=distance_sd(problem, res, loop_x, term_cov),
+               ms_final_move={"kappa_t": float(np.exp(res.x[0] - loop_x[0]) - 1.0),
+                              "g": float(np.tanh(res.x[2]) - np.tanh(loop_x[2]))},
                ms_images=ms_images(problem, res.x), full_other_g_mode=other_g)
     return res, out
 

@@ -9,7 +9,11 @@ model at the current MAP, polish the MAP with it (within a trust region where th
 local model is first-order accurate), until the MAP moves by less than
 ``MOVE_TOL_SD`` of its posterior sd, or by less than what two realisations of the term
 explain (``term_jackknife``: each refresh at a new point is partly a new realisation, and
-that error is in the values' uncertainty).  The sampler then runs on the last local model.
+that error is in the values' uncertainty).  After the checks on that fixed point (another
+seed, a restart beyond it, the other sign of g), the last refreshes trace
+``FINAL_PATHS_FACTOR`` times the paths (``more_paths``): the fixed point is offset by the
+term's own noise by an amount that falls with the paths.  The sampler then runs on the last
+local model.
 
 The term's Monte Carlo error enters the likelihood's variance (``ChannelProblem.
 refresh_models``): the per-pixel variance of the estimate at the refresh point, times
@@ -49,6 +53,11 @@ AUTO_SHARE = 0.02
 #: kappa_t and atanh g, and it refreshes the term at most this many times
 RESTART_REACH = 0.5
 RESTART_REFRESHES = 4
+#: the last refreshes trace the term with this many times its paths (``more_paths``): the
+#: MAP's offset from the term's own noise falls with the paths (docs/inference.md, "The g
+#: offset at the truth"); 1: no such stage
+FINAL_PATHS_FACTOR = 16
+FINAL_REFRESHES = 2
 #: the jackknife's finite-difference step, in posterior sd of each coordinate
 JACKKNIFE_STEP_SD = 0.1
 #: the term is traced on a grid of about this many sample pixels (camera pixels binned)
@@ -270,11 +279,41 @@ def restart_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult
     other, _ = refine_map(problem, space, first, max_refresh=RESTART_REFRESHES)
     problem.refresh_models(res.x)
     problem.adapt(res.x)
+    return distance_sd(problem, res, other.x, term_cov), other.x
+
+
+def distance_sd(problem: ChannelProblem, res: MapResult, x: np.ndarray,
+                term_cov: np.ndarray | None) -> float:
+    """Largest distance of log kappa_t and atanh g between ``x`` and the MAP ``res`` in units
+    of the values' sd there (the Laplace covariance, or ``_cov_or_ridge``'s, plus the term's
+    ``term_cov``); inf without a covariance."""
+    idx = [0, 2]
     cov = _cov_or_ridge(problem, res)
     if cov is None:
-        return float("inf"), other.x
+        return float("inf")
     sd = np.sqrt(np.diag(cov + (term_cov if term_cov is not None else 0.0))[idx])
-    return float(np.max(np.abs(other.x[idx] - res.x[idx]) / sd)), other.x
+    return float(np.max(np.abs(np.asarray(x)[idx] - res.x[idx]) / sd))
+
+
+def more_paths(problem: ChannelProblem, space: ParameterSpace, res: MapResult, *,
+               factor: int = FINAL_PATHS_FACTOR, max_refresh: int = FINAL_REFRESHES
+               ) -> tuple[MapResult, FullFitInfo, int]:
+    """The last refreshes: every full-transport model of ``problem`` traces ``factor`` times
+    its paths from now on, and the MAP is refined from ``res`` with at most ``max_refresh``
+    refreshes (``refine_map``).  At the paths of the loop (256 per sample pixel) the refresh
+    loop's fixed point is offset by the term's own noise (kappa_t and g low by up to a few
+    posterior sd; the offset falls with the paths, and at 16 times them it was within a third
+    of an sd: docs/inference.md); the sampler then runs on this local model, whose cost does
+    not depend on the paths.  Returns the MAP, what the refreshes did, and the paths per
+    sample pixel now traced."""
+    paths = 0
+    for o in problem.obs:
+        ms = getattr(o.model, "ms", None)
+        if ms is not None:
+            ms.n_paths = int(ms.n_paths * max(int(factor), 1))
+            paths = ms.n_paths
+    new, info = refine_map(problem, space, res, max_refresh=max_refresh)
+    return new, info, paths
 
 
 def ms_images(problem: ChannelProblem, u: np.ndarray) -> list[np.ndarray] | None:

@@ -91,6 +91,8 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
                 "seed_shift_sd": f["ms_seed_shift_sd"],
                 "term_sd": _term_sd(f), "restart_shift_sd": f.get("ms_restart_shift_sd"),
                 "restart_values": f.get("ms_restart_values"),
+                "final_paths": f.get("ms_final_paths"), "final_move": f.get("ms_final_move"),
+                "final_move_sd": f.get("ms_final_move_sd"),
                 "other_g_mode": f.get("full_other_g_mode")}
                if f["model_used"] == "full" else {})}
     params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys)

@@ -372,6 +372,9 @@ def _ms_section(results: dict) -> str:
         ("Second fit from beyond the MAP: distance [sd]",
          lambda i, c: _cell(_num(i.get("restart_shift_sd")), 3)),
         ("Second fit: &kappa;<sub>t</sub>, g", lambda i, c: _restart_cell(i.get("restart_values"))),
+        ("Last refreshes: paths per sample pixel", lambda i, c: _cell(i.get("final_paths"))),
+        ("Their move: &kappa;<sub>t</sub> [relative], g", lambda i, c: _final_move_cell(
+            i.get("final_move"))),
     ]
     rows = [[label] + [get(info, c) for c, info in ms.items()] for label, get in fields]
     rows = [r for r in rows if any(x != "&mdash;" for x in r[1:])]
@@ -382,7 +385,9 @@ def _ms_section(results: dict) -> str:
               "posterior sd of log &kappa;<sub>t</sub> and atanh g; the move with other random "
               "numbers is in units of the sd the term's error (its jackknife, included in the "
               "intervals) gives it; a second fit far from the first means the images do not "
-              "decide between them (docs/inference.md).</p>\n")
+              "decide between them; the last refreshes trace more paths, which removes most of "
+              "the offset the term's own noise gives the values, and their move is how far "
+              "that went (docs/inference.md).</p>\n")
 
 
 def _term_sd_cell(sd: Any) -> str:
@@ -390,6 +395,13 @@ def _term_sd_cell(sd: Any) -> str:
     if not isinstance(sd, dict):
         return "&mdash;"
     return ", ".join(_cell(_num(sd.get(k)), 2) for k in ("log_kappa_t", "atanh_g"))
+
+
+def _final_move_cell(v: Any) -> str:
+    """results.json's ``final_move``: kappa_t's relative change (per cent), g's change."""
+    if not isinstance(v, dict) or _num(v.get("kappa_t")) is None or _num(v.get("g")) is None:
+        return "&mdash;"
+    return f"{100 * _num(v['kappa_t']):+.1f} %, {_num(v['g']):+.3f}"
 
 
 def _restart_cell(v: Any) -> str:
