@@ -21,7 +21,9 @@ import pytest
 from conftest import make_spec
 from fitmedia.cli import main
 from fitmedia.forward.single import SingleScattering
-from fitmedia.inference.full import AUTO_SHARE, MOVE_TOL_SD, refine_map, restart_shift
+from fitmedia.forward.multiple import DEFAULT_PATHS
+from fitmedia.inference.full import (AUTO_SHARE, FINAL_PATHS_FACTOR, MOVE_TOL_SD, refine_map,
+                                    restart_shift)
 from fitmedia.inference.likelihood import ChannelProblem, Observation
 from fitmedia.inference.optimize import find_map
 from fitmedia.inference.params import ChannelParams, ParameterSpace
@@ -180,6 +182,10 @@ def test_auto_switches_on_a_mitsuba_milk_capture(tmp_path):
     chi2 = {k: r["diagnostics"]["channels"]["G"]["chi2_per_pixel"]
             for k, r in (("single", single), ("auto", auto))}
     assert chi2["auto"] < 0.6 * chi2["single"], chi2
+    # the last refreshes traced FINAL_PATHS_FACTOR times the paths, and say how far they moved
+    assert ms["final_paths"] == FINAL_PATHS_FACTOR * DEFAULT_PATHS
+    assert set(ms["final_move"]) == {"kappa_t", "g"} and np.isfinite(ms["final_move_sd"])
+    assert ms["refreshes"] == len(ms["moves_sd"]) == len(ms["moves_term_units"])
     # what is not yet right is said: exit 1 whenever trust.ok is False
     assert (rc == 1) == (not auto["trust"]["ok"])
 

@@ -309,7 +309,7 @@ def more_paths(problem: ChannelProblem, space: ParameterSpace, res: MapResult, *
     paths = 0
     for o in problem.obs:
         ms = getattr(o.model, "ms", None)
-        if ms is not None:
+        if ms is not None and hasattr(ms, "n_paths"):
             ms.n_paths = int(ms.n_paths * max(int(factor), 1))
             paths = ms.n_paths
     new, info = refine_map(problem, space, res, max_refresh=max_refresh)
