@@ -27,6 +27,12 @@ from .errors import BlackImageError, InputError
 from .inference.result import read_result
 from .util import check_output_dir, write_json
 
+#: validate's default paths per pixel of a ``hybrid`` capture's multiple-scattering term: far
+#: more than the fit's last term (4096), whose realisation error a capture's own must stay
+#: well below (docs/validation.md: at 4096 an Espresso 29 ml capture, 32 x 24 px, put the
+#: fit's values at the truth 4-7 % low in kappa_t; at 16384, within 1.5 %)
+HYBRID_SPP = 16384
+
 if TYPE_CHECKING:  # pragma: no cover  (imported in the functions: `fitmedia --help` stays fast)
     from .inference.result import FitOptions, FitResult
     from .validate import Score, ValidationResult
@@ -271,7 +277,7 @@ def synth_choice(fit_model: str, synth_model: str | None, synth_spp: int | None
     model = synth_model or ("single" if fit_model == "single" else "hybrid")
     if model not in ("single", "hybrid", "full"):
         raise InputError(f"--synth-model: expected 'single', 'hybrid' or 'full', got {model!r}")
-    spp = synth_spp if synth_spp is not None else (4096 if model == "hybrid" else 256)
+    spp = synth_spp if synth_spp is not None else (HYBRID_SPP if model == "hybrid" else 256)
     if not _is_int(spp, 16):
         raise InputError(f"--synth-spp: expected an integer >= 16, got {spp!r}")
     return model, int(spp)
@@ -373,7 +379,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
         ``options.model`` full or auto: Mitsuba's own render noise at any affordable spp is
         above the camera's (docs/validation.md, "Full transport").
     synth_spp : int, optional
-        Paths per pixel of the hybrid term (default 4096) or Mitsuba's samples per pixel
+        Paths per pixel of the hybrid term (default ``HYBRID_SPP``) or Mitsuba's samples per pixel
         (default 256).
 
     Returns

@@ -196,7 +196,7 @@ def add_validate_parser(sub) -> None:
                    help="how each capture is rendered (as synth --model); default single for "
                         "--model single, else hybrid (docs/validation.md)")
     p.add_argument("--synth-spp", type=_positive_int, default=None,
-                   help="paths per pixel of the hybrid term (default 4096) or Mitsuba's spp "
+                   help="paths per pixel of the hybrid term (default 16384) or Mitsuba's spp "
                         "(default 256)")
     p.add_argument("--optical-depth", type=_finite, nargs=2, default=None, metavar=("LO", "HI"),
                    help="draw each round's ml so that the G channel's optical depth from the "
