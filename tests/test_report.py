@@ -278,7 +278,8 @@ def test_report_multiple_scattering_table_and_full_model_causes(fit_outputs, tmp
         "share": [0.6123], "share_se": [0.0123], "share_at_single_scattering_map": [0.55],
         "refreshes": 3, "converged": True, "moves_sd": [2.0, 0.4, 0.05], "seed_shift_sd": 3.25,
         "term_sd": {"log_kappa_t": 0.0166, "logit_albedo": 0.82, "atanh_g": 0.0114},
-        "restart_shift_sd": 7.31, "restart_values": {"kappa_t": 14.72, "g": 0.887}})
+        "restart_shift_sd": 7.31, "restart_values": {"kappa_t": 14.72, "g": 0.887},
+        "final_paths": 4096, "final_move": {"kappa_t": 0.0126, "g": 0.0069}, "final_move_sd": 0.81})
     results["trust"].update(ok=False, reasons=["the multiple-scattering term's own Monte Carlo "
                                                "error moves the values of channel G by 3.2 sd"])
     (out / "results.json").write_text(json.dumps(results))
@@ -287,6 +288,7 @@ def test_report_multiple_scattering_table_and_full_model_causes(fit_outputs, tmp
     ms = ms[:ms.index("</table>")]
     assert "0.612 &plusmn; 0.012" in ms and "3.25" in ms and "Refreshes settled" in ms
     assert "0.017, 0.011" in ms and "7.31" in ms and "14.72, 0.887" in ms  # jackknife, restart
+    assert "4096" in ms and "+1.3 %, +0.007" in ms  # the last refreshes: paths, move
     assert "{" not in ms and "{'share'" not in text  # no raw dict anywhere
     box = text[text.index('class="untrusted"'):text.index("<h2>Estimates</h2>")]
     assert "Monte Carlo error" in box and "--model full" not in box
