@@ -86,18 +86,6 @@ def use_full_transport(problem: ChannelProblem, spec, channel: str, *, seed: int
         o.model = FullTransport(spec, i, channels=(channel,), seed=seed, single=o.model, bin=b)
 
 
-def _move_in_sd(problem: ChannelProblem, old: np.ndarray, new: MapResult) -> float:
-    """Largest move of log kappa_t and atanh g (the local model's coordinates) between two
-    MAPs, in units of the posterior sd at the new one: the Laplace sd, or where the full
-    Laplace covariance is not positive definite (the albedo on its plateau), the sd of the
-    two with the other parameters held at the MAP (``_cov_or_ridge``)."""
-    idx = [0, 2]
-    cov = _cov_or_ridge(problem, new)
-    if cov is None:
-        return float("inf")
-    return float(np.max(np.abs(new.x[idx] - old[idx]) / np.sqrt(np.diag(cov)[idx])))
-
-
 def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult, *,
                max_refresh: int = MAX_REFRESH) -> tuple[MapResult, FullFitInfo]:
     """Alternate local-model refreshes and MAP polishes from ``start`` (module docstring).
@@ -112,7 +100,7 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
         for j in (0, 2):  # log kappa_t, atanh g: the local model's coordinates
             lo[j], hi[j] = max(lo[j], res.x[j] - TRUST_STEP), min(hi[j], res.x[j] + TRUST_STEP)
         new = find_map(problem.log_posterior, np.clip(res.x, lo, hi), lo, hi, global_evals=0)
-        move = _move_in_sd(problem, res.x, new)
+        move = distance_sd(problem, new, res.x, None)
         jitter = _in_term_units(res.x, new.x, _cov_or_ridge(problem, new),
                                 term_jackknife(problem, new))
         log.debug("full transport: refresh %d at %s -> %s, move %.3g sd, %.3g in term units",
@@ -238,7 +226,7 @@ def seed_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult, s
     problem._model_var = saved
     problem.adapt(res.x)
     if term_cov is None:
-        return _move_in_sd(problem, res.x, other)
+        return distance_sd(problem, other, res.x, None)
     return _in_term_units(res.x, other.x, _cov_or_ridge(problem, res), term_cov)
 
 
@@ -284,9 +272,11 @@ def restart_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult
 
 def distance_sd(problem: ChannelProblem, res: MapResult, x: np.ndarray,
                 term_cov: np.ndarray | None) -> float:
-    """Largest distance of log kappa_t and atanh g between ``x`` and the MAP ``res`` in units
-    of the values' sd there (the Laplace covariance, or ``_cov_or_ridge``'s, plus the term's
-    ``term_cov``); inf without a covariance."""
+    """Largest distance of log kappa_t and atanh g (the local model's coordinates) between
+    ``x`` and the MAP ``res`` in units of the values' sd there: the Laplace covariance, or
+    where that is not positive definite (the albedo on its plateau) ``_cov_or_ridge``'s, plus
+    the term's ``term_cov`` (None: the posterior sd alone, as for a refresh's move); inf
+    without a covariance."""
     idx = [0, 2]
     cov = _cov_or_ridge(problem, res)
     if cov is None:
