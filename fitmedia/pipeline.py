@@ -157,6 +157,9 @@ def fit_capture(capture: Spec | str | Path, *, model: Any = None,
     options = options if options is not None else FitOptions()
     if out is None and options.resume:
         raise InputError("options.resume: needs out, the folder holding the checkpoints")
+    if options.resume and not options.mcmc:
+        raise InputError("options.resume: continues the sampler's chains, and options.mcmc is "
+                         "off (--no-mcmc): there is nothing to resume")
     dest = check_output_dir(out) if out is not None else None
     spec = _load(capture)
     forward, options = forward_factory(model, spec, options)

@@ -292,3 +292,17 @@ def two_channel_free_capture(two_captures, tmp_path_factory):
         one.write_text(spec.read_text() + "channels: [R]\n")
         out.append(one)
     return out
+
+
+def test_resume_without_the_sampler_is_refused(two_captures, tmp_path, capsys, monkeypatch):
+    """`--resume --no-mcmc` asks to continue chains that this run would not sample: one line
+    naming the option, exit 2, before any fitting (it used to fit the MAP and leave the
+    checkpoints of an earlier run beside results they do not belong to)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    _write_checkpoint(out / "checkpoint_R.npz", _identity(two_captures[0]))
+    before = _snapshot(out)
+    code, err = _resume(two_captures[0], out, capsys, monkeypatch, "--no-mcmc")
+    assert code == 2
+    _one_line(err, "resume", "no-mcmc")
+    assert _snapshot(out) == before
