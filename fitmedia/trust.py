@@ -251,8 +251,10 @@ def not_separable_note(ch: str, reduced: dict) -> str:
     lo, hi = reduced.get("q05"), reduced.get("q95")
     value = reduced.get("median", reduced["map"])
     interval = f" (90 % interval {lo:.4g} - {hi:.4g})" if lo is not None else ""
-    return (f"channel {ch}: kappa_s and g are not separately measured (a dense medium: the "
-            f"images constrain only kappa_t and kappa_s' = kappa_s (1 - g)); read "
+    return (f"channel {ch}: kappa_s and g are not separately measured (the images constrain "
+            f"kappa_s' = kappa_s (1 - g) much better than kappa_s and g: in a dense medium "
+            f"because of the similarity relation, in a thin one or at few pixels for want of "
+            f"information on g); read "
             f"kappa_s' = {value:.4g} 1/mm{interval}, not kappa_s and g on their own")
 
 
