@@ -239,3 +239,22 @@ def test_term_jackknife_matches_the_spread_of_independent_realisations(rng):
     wide = convolve_samples(base, jk, rng)
     rel = np.diag(np.cov(wide, rowvar=False)) / np.diag(res.cov + jk)
     assert np.all(np.abs(rel - 1) < 0.02), rel
+
+
+def test_models_kept_restores_models_and_their_variance_even_after_an_error(rng):
+    """ChannelProblem.models_kept (what seed_shift traces its second realisation inside):
+    after the block, also one left by an error, each observation has its model back and the
+    log posterior is bit for bit what it was (the Monte Carlo variance of that model, not the
+    replacement's).  Control: inside the block, with another model and variance, it differs."""
+    single, problem, space, truth, res = _stub_problem(rng, 0.0004, StubFullTransport)
+    before_model = problem.obs[0].model
+    problem._model_var[0] = np.zeros(len(problem.obs[0].values))  # as refresh_models sets it
+    before = problem.log_posterior(res.x)
+    with pytest.raises(RuntimeError):
+        with problem.models_kept():
+            problem.obs[0].model = single
+            problem._model_var[0] = np.full(len(problem.obs[0].values), 1e-6)
+            assert problem.log_posterior(res.x) != before
+            raise RuntimeError("a failed trace")
+    assert problem.obs[0].model is before_model
+    assert problem.log_posterior(res.x) == before

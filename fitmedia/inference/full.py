@@ -215,15 +215,11 @@ def seed_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult, s
     ``MOVE_TOL_SD`` posterior sd at each end).  Without ``term_cov``: in posterior sd.  A
     large value means the jackknife understates the term's error, and with it the
     intervals.  The problem keeps its original term afterwards."""
-    models = [o.model for o in problem.obs]
-    saved = list(problem._model_var)
-    for o in problem.obs:
-        o.model = getattr(o.model, "single", o.model)
-    use_full_transport(problem, spec, channel, seed=seed)
-    other, _ = refine_map(problem, space, res, max_refresh=2)
-    for o, m in zip(problem.obs, models):
-        o.model = m
-    problem._model_var = saved
+    with problem.models_kept():
+        for o in problem.obs:
+            o.model = getattr(o.model, "single", o.model)
+        use_full_transport(problem, spec, channel, seed=seed)
+        other, _ = refine_map(problem, space, res, max_refresh=2)
     problem.adapt(res.x)
     if term_cov is None:
         return distance_sd(problem, other, res.x, None)

@@ -13,6 +13,7 @@ reported.  Optionally a Student-t likelihood (nu = 4) for outliers.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,6 +101,19 @@ class ChannelProblem:
         """Noise variance of observation ``k``'s used pixels at model values ``m``."""
         g, r = self._noise[k]
         return g * np.maximum(m, 0.0) + r + self._model_var[k]
+
+    @contextmanager
+    def models_kept(self):
+        """Within the block the observations' forward models may be replaced and refreshed;
+        afterwards (also after an error) every observation has its model back, with the Monte
+        Carlo variance that model had (``seed_shift``: a second realisation of the term)."""
+        models, var = [o.model for o in self.obs], list(self._model_var)
+        try:
+            yield self
+        finally:
+            for o, m in zip(self.obs, models):
+                o.model = m
+            self._model_var = var
 
     def refresh_models(self, u: np.ndarray) -> None:
         """Rebuild the local model of every Monte Carlo forward model (``refresh``, as
