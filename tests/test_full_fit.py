@@ -258,3 +258,43 @@ def test_models_kept_restores_models_and_their_variance_even_after_an_error(rng)
             raise RuntimeError("a failed trace")
     assert problem.obs[0].model is before_model
     assert problem.log_posterior(res.x) == before
+
+
+def test_term_jackknife_holds_an_albedo_on_its_plateau(rng):
+    """Where logit albedo's Laplace sd is above ALBEDO_HELD_SD (the albedo on its plateau,
+    kappa_a unresolved), a Newton step along it is meaningless: on a 16 x 12 px Lowfat Milk
+    capture the jackknife gave logit albedo an sd of 10^2-10^5, and the convolved samples had
+    albedos of 0 and 1 (median kappa_s 0 in B).  The stub Monte Carlo term, at a MAP whose
+    Laplace covariance is given logit albedo's sd 3 x ALBEDO_HELD_SD (its correlations
+    removed): the jackknife gives logit albedo no variance and log kappa_t and atanh g
+    theirs, of the order of the jackknife at the true covariance; the old rule (the given
+    covariance as it is) gives logit albedo a variance above ALBEDO_HELD_SD^2 (the control).
+    Below the bound the covariance is used as it is (logit albedo gets a variance)."""
+    from fitmedia.inference import full
+    from fitmedia.inference.full import ALBEDO_HELD_SD, term_jackknife
+    from fitmedia.inference.optimize import MapResult
+
+    _, problem, space, truth, res = _stub_problem(rng, 0.0004,
+                                                  lambda single: StubBatchedTransport(single, rng))
+    assert res.cov is not None and np.sqrt(res.cov[1, 1]) < ALBEDO_HELD_SD
+    as_is = term_jackknife(problem, res)
+    assert as_is[1, 1] > 0
+    cov = res.cov.copy()
+    cov[1, :] = cov[:, 1] = 0.0
+    cov[1, 1] = (3 * ALBEDO_HELD_SD) ** 2
+    plateau = MapResult(res.x, res.log_posterior, res.n_evals, cov)
+    jk = term_jackknife(problem, plateau)
+    assert np.all(jk[1] == 0.0) and np.all(jk[:, 1] == 0.0)
+    assert np.all(np.isfinite(jk)) and jk[0, 0] > 0 and jk[2, 2] > 0
+    old = full._newton_covariance
+    try:
+        full._newton_covariance = full._cov_or_ridge
+        jk_old = term_jackknife(problem, plateau)
+    finally:
+        full._newton_covariance = old
+    assert jk_old[1, 1] > ALBEDO_HELD_SD ** 2, jk_old[1, 1]
+    # log kappa_t and atanh g keep a variance of the order of the jackknife with the true
+    # covariance of this point (its logit albedo correlates with log kappa_t, which holding
+    # the albedo removes: smaller, not zero)
+    for j in (0, 2):
+        assert 0.05 < jk[j, j] / as_is[j, j] < 2.0, (j, jk[j, j], as_is[j, j])

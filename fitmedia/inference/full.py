@@ -60,6 +60,11 @@ FINAL_PATHS_FACTOR = 16
 FINAL_REFRESHES = 2
 #: the jackknife's finite-difference step, in posterior sd of each coordinate
 JACKKNIFE_STEP_SD = 0.1
+#: the jackknife holds logit albedo where its Laplace sd exceeds this: the albedo on its
+#: plateau (albedo -> 1, kappa_a unresolved), where a Newton step along it is meaningless
+#: (measured: steps of 10^2-10^5 in logit albedo, which the convolution then put into the
+#: samples as albedos of 0 and 1; docs/inference.md)
+ALBEDO_HELD_SD = 1.0
 #: the term is traced on a grid of about this many sample pixels (camera pixels binned)
 TRACE_WIDTH, TRACE_HEIGHT = 48, 36
 
@@ -124,10 +129,11 @@ def term_jackknife(problem: ChannelProblem, res: MapResult) -> np.ndarray | None
     from ``res`` (its Laplace covariance times the gradient of the log posterior with that
     batch left out, central differences at a tenth of a posterior sd), so the whole costs
     ``2 P`` posterior evaluations per batch and no new trace.  Where the Laplace covariance is
-    not positive definite, that of log kappa_t and atanh g alone (``_cov_or_ridge``).  None
-    without a Monte Carlo model or either covariance."""
+    not positive definite, that of log kappa_t and atanh g alone (``_cov_or_ridge``); where
+    the albedo is on its plateau, that of the other coordinates with logit albedo held
+    (``_newton_covariance``).  None without a Monte Carlo model or either covariance."""
     models = [o.model for o in problem.obs if hasattr(o.model, "leave_out")]
-    cov = _cov_or_ridge(problem, res)
+    cov = _newton_covariance(problem, res) if models else None
     if not models or cov is None:
         return None
     lo, hi = problem.space.lower, problem.space.upper
@@ -154,12 +160,25 @@ def term_jackknife(problem: ChannelProblem, res: MapResult) -> np.ndarray | None
     return (len(d) - 1) / len(d) * d.T @ d
 
 
-def _ridge_covariance(problem: ChannelProblem, x: np.ndarray) -> np.ndarray | None:
+def _newton_covariance(problem: ChannelProblem, res: MapResult) -> np.ndarray | None:
+    """The covariance ``term_jackknife``'s Newton steps use: the Laplace covariance
+    (``_cov_or_ridge``), except where logit albedo's Laplace sd exceeds ``ALBEDO_HELD_SD``:
+    then that of the other coordinates with logit albedo held at the MAP (zero in its row and
+    column), so that the term's error moves kappa_t, g and the brightness, not an albedo the
+    images do not determine; the ridge covariance if that is not positive definite."""
+    cov = _cov_or_ridge(problem, res)
+    if res.cov is None or cov is None or cov[1, 1] <= ALBEDO_HELD_SD ** 2:
+        return cov
+    held = _ridge_covariance(problem, res.x, [j for j in range(len(res.x)) if j != 1])
+    return held if held is not None else _ridge_covariance(problem, res.x)
+
+
+def _ridge_covariance(problem: ChannelProblem, x: np.ndarray, idx=(0, 2)) -> np.ndarray | None:
     """Where the full Laplace covariance is not positive definite (the albedo on its
-    plateau): the covariance of log kappa_t and atanh g with the other coordinates held at
-    ``x``, embedded in a (P, P) matrix with zeros elsewhere (the term's error is then carried
-    by those two alone); None if that is not positive definite either."""
-    idx = [0, 2]
+    plateau): the covariance of the coordinates ``idx`` (log kappa_t and atanh g) with the
+    others held at ``x``, embedded in a (P, P) matrix with zeros elsewhere (the term's error
+    is then carried by those alone); None if that is not positive definite either."""
+    idx = list(idx)
 
     def sub(y):
         z = x.copy()
