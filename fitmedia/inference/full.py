@@ -133,8 +133,10 @@ def term_jackknife(problem: ChannelProblem, res: MapResult) -> np.ndarray | None
     the albedo is on its plateau, that of the other coordinates with logit albedo held
     (``_newton_covariance``).  None without a Monte Carlo model or either covariance."""
     models = [o.model for o in problem.obs if hasattr(o.model, "leave_out")]
-    cov = _newton_covariance(problem, res) if models else None
-    if not models or cov is None:
+    if not models:
+        return None
+    cov = _newton_covariance(problem, res)
+    if cov is None:
         return None
     lo, hi = problem.space.lower, problem.space.upper
     step = np.where(np.diag(cov) > 0, JACKKNIFE_STEP_SD * np.sqrt(np.diag(cov)), 0.0)
@@ -166,16 +168,15 @@ def _newton_covariance(problem: ChannelProblem, res: MapResult) -> np.ndarray | 
     then that of the other coordinates with logit albedo held at the MAP (zero in its row and
     column), so that the term's error moves kappa_t, g and the brightness, not an albedo the
     images do not determine; the ridge covariance if that is not positive definite."""
-    cov = _cov_or_ridge(problem, res)
-    if res.cov is None or cov is None or cov[1, 1] <= ALBEDO_HELD_SD ** 2:
-        return cov
+    if res.cov is None or res.cov[1, 1] <= ALBEDO_HELD_SD ** 2:
+        return _cov_or_ridge(problem, res)
     held = _ridge_covariance(problem, res.x, [j for j in range(len(res.x)) if j != 1])
     return held if held is not None else _ridge_covariance(problem, res.x)
 
 
 def _ridge_covariance(problem: ChannelProblem, x: np.ndarray, idx=(0, 2)) -> np.ndarray | None:
-    """Where the full Laplace covariance is not positive definite (the albedo on its
-    plateau): the covariance of the coordinates ``idx`` (log kappa_t and atanh g) with the
+    """Where the full Laplace covariance is not positive definite or the albedo is on its
+    plateau: the covariance of the coordinates ``idx`` (log kappa_t and atanh g) with the
     others held at ``x``, embedded in a (P, P) matrix with zeros elsewhere (the term's error
     is then carried by those alone); None if that is not positive definite either."""
     idx = list(idx)
