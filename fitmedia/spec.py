@@ -161,6 +161,9 @@ SCHEMA = {
                                  "exposure_s": {"type": "number", "exclusiveMinimum": 0}}},
         "channels": {"type": "array", "items": {"enum": list(CHANNELS)},
                      "minItems": 1, "maxItems": 3, "uniqueItems": True},
+        # optional: what rendered a synthetic capture's images (fitmedia synth; docs/spec.md)
+        "synthetic": {"type": "object", "additionalProperties": False, "required": ["model"],
+                      "properties": {"model": {"enum": ["single", "full", "hybrid"]}}},
     },
 }
 
@@ -241,6 +244,8 @@ class Spec:
     channels: tuple[str, ...] = CHANNELS
     water_kappa_a: tuple[float, float, float] = (0.0, 0.0, 0.0)
     priors: dict = field(default_factory=dict)
+    #: the forward model that rendered a synthetic capture (``synthetic.model``), else None
+    synthetic_model: str | None = None
     raw: dict = field(default_factory=dict, repr=False, compare=False)
 
     def camera_for(self, i: int) -> Camera:
@@ -470,7 +475,8 @@ def parse_spec(data: Any, *, source: str = "<spec>", base: Path | None = None,
                 noise=noise, noise_exposure=(data.get("noise") or {}).get("exposure_s"),
                 channels=channels,
                 water_kappa_a=_channel_values(water, CHANNELS, where, "medium.water_kappa_a"),
-                priors=priors, raw=copy.deepcopy(data))
+                priors=priors, synthetic_model=(data.get("synthetic") or {}).get("model"),
+                raw=copy.deepcopy(data))
     _check_geometry(spec, where)
     return spec
 

@@ -130,6 +130,9 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
     raw["calibration"] = {"clear_water": {"path": "images/clear_water.tiff", "exposure_s": 1.0,
                                           "saturation": SATURATION}}
     raw["noise"] = {"gain": noise.gain, "read_var": noise.read_var}
+    # what rendered the images (docs/spec.md, "synthetic"): a single-scattering render holds
+    # no multiple scattering, which the single-scattering check then need not suspect
+    raw["synthetic"] = {"model": model}
     return raw, {
         "medium": medium_name, "model": model, "seed": seed,
         "undiluted": medium.as_dict(), "images": truth_imgs,

@@ -186,6 +186,81 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
     return reasons
 
 
+#: a single-scattering fit whose multiple-scattering share at its MAP is above the share at
+#: which ``--model auto`` switches to full transport (inference/full.py: AUTO_SHARE) is asked
+#: whether the misfit guard could see that term (inference/full.py: ms_detectability): it
+#: could where the predicted rise of chi2/pixel is at least this many times the guard's room
+#: above 1 (its limit minus 1).  The prediction is rough either way (docs/results.md, "trust":
+#: 3.5 predicted where a full-transport render of the same scene rose by 10; 3.0 and 4.2
+#: predicted at a MAP already biased by the term, where the rise was ~0.05 and ~0.35), so the
+#: rule only finds where the guard is blind, with a margin of 3
+MS_DETECT_FACTOR = 3.0
+#: the single-scattering fit's bias of kappa_s per unit multiple-scattering share, at most:
+#: measured 0.2-0.8 at shares 0.21-0.66 (issue 15's Mitsuba renders at 100 x 75 px, 2006
+#: dilutions; docs/inference.md, "--model auto").  Where the guard is blind, a bias bound
+#: (this times the share) above the sd of log kappa_s (the stated uncertainty) is a reason
+MS_BIAS_PER_SHARE = 0.8
+
+
+def single_scattering_checks(chans: dict[str, dict], checks: dict[str, dict]
+                             ) -> tuple[list[str], list[str]]:
+    """Reasons and notes on what the single-scattering model leaves out, per channel fitted
+    with it (results.json's ``diagnostics.channels.<ch>.multiple_scattering`` with
+    ``chi2_excess_if_present`` and ``kappa_s_log_sd``; ``checks``: :func:`misfit_checks`'
+    verdicts).  Where the term's share of the glow at the MAP is above ``AUTO_SHARE``:
+
+    * the misfit guard fired: a note naming multiple scattering as a likely cause;
+    * the capture declares a single-scattering render (``synthetic.model: single``, as
+      ``fitmedia synth`` writes): a note, as it holds no multiple scattering;
+    * the guard could see the term (its predicted rise of chi2/pixel at least
+      ``MS_DETECT_FACTOR`` times the guard's room): a note with the share and the rise;
+    * the guard is blind to it, but the bias it would cause (``MS_BIAS_PER_SHARE`` times the
+      share, relative) is within the sd of log kappa_s: a note;
+    * else a reason: the guard's silence says nothing here, and in a photograph the term is
+      there and biases kappa_s by more than its stated uncertainty (``fitmedia fit`` exits 1).
+    """
+    from .inference.full import AUTO_SHARE
+
+    reasons, notes = [], []
+    for ch, info in chans.items():
+        ms = info.get("multiple_scattering") or {}
+        excess, share = ms.get("chi2_excess_if_present"), ms.get("share") or []
+        if info.get("model_used") != "single" or excess is None or not share \
+                or not max(share) > AUTO_SHARE:
+            continue
+        top = max(share)
+        pct = f"{100 * top:.0f} %" if top >= 0.1 else f"{100 * top:.1f} %"
+        what = (f"multiple scattering, which the single-scattering model leaves out, would be "
+                f"{pct} of the glow in channel {ch} at the fitted values")
+        check = checks.get(ch) or {}
+        room = check.get("limit", float("nan")) - 1.0
+        bias, sd = MS_BIAS_PER_SHARE * top, ms.get("kappa_s_log_sd")
+        blind = (f"these images cannot show whether it is there (it would raise chi2/pixel by "
+                 f"about {excess:.2g}, where the guard allows {room:.2g})")
+        if check.get("ok") is False:
+            notes.append(f"{what}: a likely cause of the misfit; fit with --model full")
+        elif ms.get("capture_declared_single_scattering_render"):
+            notes.append(f"{what}; the capture declares a single-scattering render (spec: "
+                         "synthetic.model: single), which holds none: a photograph would, and "
+                         "its single-scattering values would be biased")
+        elif excess >= MS_DETECT_FACTOR * room:
+            notes.append(f"{what}; the misfit guard can see it here (images holding it would "
+                         f"raise chi2/pixel by about {excess:.2g} at these values, where the guard "
+                         f"allows {room:.2g})")
+        elif sd is not None and bias <= sd:
+            notes.append(f"{what}, and {blind}; the bias it would cause (up to {100 * bias:.2g} % "
+                         f"in kappa_s) is within kappa_s's uncertainty ({100 * sd:.2g} %)")
+        else:
+            reasons.append(
+                f"{what}, and {blind}: in a photograph it is there, and then kappa_s of channel "
+                f"{ch} is biased by up to about {100 * bias:.2g} % (measured: {MS_BIAS_PER_SHARE:g} "
+                "times the share at most), more than its stated uncertainty"
+                + (f" ({100 * sd:.2g} %)" if sd is not None else " (none without the sampler's "
+                   "or the Laplace covariance)")
+                + "; fit with --model full, or use more pixels")
+    return reasons, notes
+
+
 # ---------------------------------------------------------------------------------------------
 # kappa_s' = kappa_s (1 - g)
 
@@ -221,10 +296,9 @@ def reduced_from_laplace(x_map: np.ndarray, cov: np.ndarray | None, names: Seque
     if cov is None or not np.all(np.isfinite(cov)):
         return out, None
     u = np.asarray(x_map, float)
-    i_t, i_a, i_g = (list(names).index(n) for n in ("log_kappa_t", "logit_albedo", "atanh_g"))
-    albedo, g = 1.0 / (1.0 + np.exp(-u[i_a])), np.tanh(u[i_g])
-    j_s = np.zeros(len(u))
-    j_s[i_t], j_s[i_a] = 1.0, 1.0 - albedo  # d log kappa_s
+    i_g = list(names).index("atanh_g")
+    g = np.tanh(u[i_g])
+    j_s = _log_kappa_s_gradient(u, names)
     j_r = j_s.copy()
     j_r[i_g] = -(1.0 + g)                   # d log(1 - tanh u) / du = -(1 + g)
     var_s, var_r = float(j_s @ cov @ j_s), float(j_r @ cov @ j_r)
@@ -234,6 +308,29 @@ def reduced_from_laplace(x_map: np.ndarray, cov: np.ndarray | None, names: Seque
     out.update({k: red * math.exp(z * sd) for k, z in
                 (("q05", -Z90), ("q16", -Z68), ("q84", Z68), ("q95", Z90))}, sd_log=sd)
     return out, sd / math.sqrt(var_s)
+
+
+def _log_kappa_s_gradient(u: np.ndarray, names: Sequence[str]) -> np.ndarray:
+    """d log kappa_s / d u in the sampler's coordinates (log kappa_t, logit albedo, ...)."""
+    i_t, i_a = (list(names).index(n) for n in ("log_kappa_t", "logit_albedo"))
+    j = np.zeros(len(u))
+    j[i_t], j[i_a] = 1.0, 1.0 - 1.0 / (1.0 + np.exp(-u[i_a]))
+    return j
+
+
+def log_kappa_s_sd(kappa_s: np.ndarray | None, x_map: np.ndarray, cov: np.ndarray | None,
+                   names: Sequence[str]) -> float | None:
+    """The sd of log kappa_s: from the posterior samples ``kappa_s`` (their 90 % interval's
+    width in the log over 2 x 1.645, robust to a tail at 0), else from the Laplace covariance
+    linearised at the MAP; None where neither gives one."""
+    if kappa_s is not None and len(kappa_s):
+        lo, hi = np.quantile(kappa_s, [0.05, 0.95])
+        return float(np.log(hi / lo) / (2 * Z90)) if lo > 0 else None
+    if cov is None or not np.all(np.isfinite(cov)):
+        return None
+    j = _log_kappa_s_gradient(np.asarray(x_map, float), names)
+    var = float(j @ cov @ j)
+    return math.sqrt(var) if var > 0 else None
 
 
 def separable(width_ratio: float | None, kappa_s_consistent_with_zero: bool | None

@@ -15,6 +15,8 @@ from scipy.stats import norm
 from fitmedia import trust
 from fitmedia.cli import main
 
+from conftest import geometry_dict
+
 DATA = Path(__file__).resolve().parent / "data" / "misfit"
 
 
@@ -111,12 +113,92 @@ def test_guard_on_full_transport_capture(capture, fires, tmp_path, capsys):
     assert code == (1 if fires else 0), out.err
     assert res["trust"]["ok"] is (not fires)
     check = res["trust"]["misfit"]["G"]
+    ms = res["diagnostics"]["channels"]["G"]["multiple_scattering"]
+    assert 0.4 < ms["share"][0] < 0.8  # ~60 % of milk's glow (docs/multiple_scattering.md)
     if fires:
         assert check["chi2_per_pixel"] > 3 * check["limit"]
         assert "does not describe the images" in out.err
         assert res["diagnostics"]["channels"]["G"]["optical_depth_regime"] is None
+        assert any("a likely cause of the misfit" in n for n in res["trust"]["notes"])
     else:
         assert check["chi2_per_pixel"] < check["limit"]
+        # the single-scattering check: at 480 px the guard could see the term (trust.py)
+        assert ms["chi2_excess_if_present"] > trust.MS_DETECT_FACTOR * (check["limit"] - 1)
+        assert any("the misfit guard can see it here" in n for n in res["trust"]["notes"])
+
+
+def _ms_chans(share: float, excess: float, chi2: float = 1.0, sd: float | None = 0.01) -> dict:
+    return {"G": {"chi2_per_pixel": chi2, "n_pixels": 480, "model_used": "single",
+                  "multiple_scattering": {"share": [share], "chi2_excess_if_present": excess,
+                                          "kappa_s_log_sd": sd}}}
+
+
+def test_single_scattering_check_rule():
+    """trust.single_scattering_checks on made-up diagnostics, against its stated rule (480
+    pixels: the guard's room above 1 is 0.44; kappa_s known to 1 %): a share above AUTO_SHARE
+    with a predicted rise below MS_DETECT_FACTOR times the room is a reason, and so it is
+    without a stated uncertainty; with the bias bound (MS_BIAS_PER_SHARE x share) inside a
+    wider sd, a note; with the rise above the margin, a note; with the misfit guard fired, a
+    note naming the cause; on a capture that declares a single-scattering render, a note; a
+    share at or below AUTO_SHARE, a --model full channel or a fit
+    without the check, nothing."""
+    from fitmedia.inference.full import AUTO_SHARE
+
+    def run(chans):
+        checks, _ = trust.misfit_checks(chans, [], "single")
+        return trust.single_scattering_checks(chans, checks)
+
+    room = trust.chi2_limit(480) - 1
+    blind = 0.9 * trust.MS_DETECT_FACTOR * room
+    reasons, notes = run(_ms_chans(0.3, blind))
+    assert len(reasons) == 1 and not notes
+    assert "30 % of the glow in channel G" in reasons[0] and "cannot show" in reasons[0]
+    assert "up to about 24 %" in reasons[0] and "(1 %)" in reasons[0]
+    assert len(run(_ms_chans(0.3, blind, sd=None))[0]) == 1
+    reasons, notes = run(_ms_chans(0.3, blind, sd=1.01 * trust.MS_BIAS_PER_SHARE * 0.3))
+    assert not reasons and "within kappa_s's uncertainty" in notes[0]
+    reasons, notes = run(_ms_chans(0.3, 1.1 * trust.MS_DETECT_FACTOR * room))
+    assert not reasons and "can see it here" in notes[0]
+    reasons, notes = run(_ms_chans(0.3, 0.0, chi2=10.0))
+    assert not reasons and "a likely cause of the misfit" in notes[0]
+    declared = _ms_chans(0.3, blind)
+    declared["G"]["multiple_scattering"]["capture_declared_single_scattering_render"] = True
+    reasons, notes = run(declared)
+    assert not reasons and "declares a single-scattering render" in notes[0]
+    for chans in (_ms_chans(AUTO_SHARE, 0.0), _ms_chans(0.3, None)):
+        assert run(chans) == ([], [])
+    full = _ms_chans(0.3, 0.0)
+    full["G"]["model_used"] = "full"
+    assert run(full) == ([], [])
+
+
+@pytest.mark.slow
+def test_single_scattering_check_where_the_guard_is_blind(tmp_path, capsys):
+    """Espresso 8 ml in 23 l (the 2006 dilution) at 16 x 12 px, channel G, rendered with all
+    orders of scattering (``synth --model hybrid``: the analytic orders 0-1 plus fitmedia's
+    multiple-scattering term, 1024 paths): the term is ~25 % of the glow, but at 192 pixels
+    chi2/pixel at the single-scattering MAP stays within the misfit guard's limit, so the
+    guard alone passes a fit whose values are biased by the missing light.  The single-
+    scattering check finds the guard blind there (the term would raise chi2/pixel by much
+    less than the guard's room) and ``fitmedia fit --model single`` exits 1 with that reason.
+    Control: the 480-pixel milk capture above, where the guard can see the term, exits 0."""
+    geo = tmp_path / "geo.yaml"
+    geo.write_text(json.dumps({**geometry_dict(16, 12), "channels": ["G"]}))
+    assert main(["synth", str(geo), "--medium", "Espresso", "--ml", "8", "--model", "hybrid",
+                 "--spp", "1024", "--seed", "303", "--out", str(tmp_path / "cap")]) == 0
+    import yaml  # synth declares what rendered the images (docs/spec.md: synthetic)
+
+    assert yaml.safe_load((tmp_path / "cap" / "capture.yaml").read_text())["synthetic"] == \
+        {"model": "hybrid"}
+    code = main(["fit", str(tmp_path / "cap" / "capture.yaml"), "--out", str(tmp_path / "fit"),
+                 "--no-mcmc", "--quiet", "--no-report", "--workers", "1", "--model", "single"])
+    err = capsys.readouterr().err
+    res = json.loads((tmp_path / "fit" / "results.json").read_text())
+    assert res["trust"]["misfit"]["G"]["ok"] is True  # the guard alone would pass it
+    ms = res["diagnostics"]["channels"]["G"]["multiple_scattering"]
+    assert 0.1 < ms["share"][0] < 0.5
+    assert code == 1, err
+    assert "these images cannot show whether it is there" in err and "Traceback" not in err
 
 
 def test_fit_many_exit_code_carries_the_verdict(monkeypatch, tmp_path, capsys):

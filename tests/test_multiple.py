@@ -51,6 +51,28 @@ def test_no_scattering_no_term():
     assert not img.any() and not err.any()
 
 
+def test_share_and_render_agree_with_share_and_render_alone(seed):
+    """``share_and_render`` (one trace, the single-scattering check's) against ``share`` and
+    ``render`` traced on their own with the same seed (the same random numbers): equal; and a
+    glow without light (orders and order 1 all 0) has share 0, without a 0/0 warning."""
+    import warnings
+
+    _, ms = _small()
+    args = ([0.0001], [MILK["kt"]], [MILK["g"]])
+    share, se, img, img_se = ms.share_and_render(*args, [2.0], seed=seed)
+    alone, alone_se = ms.share(*args, seed=seed)
+    ref, ref_se = ms.render(*args, [2.0], seed=seed)
+    assert 0.2 < share[0] < 0.9 and se[0] > 0
+    assert share[0] == pytest.approx(alone[0], rel=1e-12) and se[0] == pytest.approx(alone_se[0])
+    np.testing.assert_allclose(img, ref, rtol=1e-12)
+    np.testing.assert_allclose(img_se, ref_se, rtol=1e-12)
+    zeros = np.zeros((ms.batches, 3, ms.low_shape[0] * ms.low_shape[1]))
+    n = ms.shape[0] * ms.shape[1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert ms._share_of(zeros, 0.5, np.zeros(n), np.zeros(n, bool)) == (0.0, 0.0)
+
+
 def test_albedo_to_zero_is_linear(seed):
     """albedo -> 0: the term -> 0 like albedo (only order 1 via the front wall is linear in it;
     it is ~3e-4 of order 2 for milk here, so the limit shows below albedo ~1e-6): term(2a) / term(a)

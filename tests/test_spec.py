@@ -73,6 +73,17 @@ def test_contract_example_is_accepted(example):
     np.testing.assert_allclose(u, [0, 1, 0])
 
 
+def test_synthetic_field_is_read(example):
+    """The optional ``synthetic.model`` (docs/spec.md): absent on the contract's example
+    (None), read where given."""
+    import yaml
+
+    assert load_spec(example).synthetic_model is None
+    data = yaml.safe_load(EXAMPLE)
+    data["synthetic"] = {"model": "single"}
+    assert parse_spec(data, source="s.yaml", require_images=False).synthetic_model == "single"
+
+
 def _data():
     import yaml
     return yaml.safe_load(EXAMPLE)
@@ -98,6 +109,8 @@ def _err(data, require_images=False) -> str:
     (lambda d: d["light"].update(radius=0), "light.radius", "0"),
     (lambda d: d["light"].update(type="laser"), "light.type", "laser"),
     (lambda d: d["light"].pop("radius"), "light", "radius"),
+    (lambda d: d.update(synthetic={"model": "dual"}), "synthetic.model", "dual"),
+    (lambda d: d.update(synthetic={"model": "single", "spp": 4}), "synthetic", "spp"),
     (lambda d: d["images"][0].update(exposure_s=0), "images[0].exposure_s", "0"),
     (lambda d: d["images"][0].update(concentration=-2), "images[0].concentration", "-2"),
     (lambda d: d.update(fitmedia_spec=2), "fitmedia_spec", "2"),

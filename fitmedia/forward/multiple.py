@@ -166,26 +166,65 @@ class MultipleScattering:
         """
         c = len(self.channels)
         ka, ks, gg, _ = check_render_args(c, kappa_a, kappa_s, g, 1.0)
-        single = single or SingleScattering(self.spec, self._image_index, channels=self.channels)
-        one = single.render(ka, ks, gg, np.ones(c))
-        direct = single.render(ka + ks, np.zeros(c), gg, np.ones(c))
+        order1 = self._order1(ka, ks, gg, single)
         share, err = np.full(c, np.nan), np.full(c, np.nan)
         for k in range(c):
             if ks[k] <= 0:
                 continue
-            order1 = (one[..., k] - direct[..., k]).ravel()
-            off = direct[..., k].ravel() <= 0
-            glow = off & (order1 > 1e-3 * order1[off].max())
+            kt, a = ka[k] + ks[k], ks[k] / (ka[k] + ks[k])
+            share[k], err[k] = self._share_of(self.orders(kt, gg[k], seed=seed, rr_albedo=a), a,
+                                              *order1[k])
+        return share, err
+
+    def share_and_render(self, kappa_a, kappa_s, g, brightness, *, seed: int = 0,
+                         single: SingleScattering | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`share` and :meth:`render` from one trace: share, its standard error (per
+        channel), the term's image and its standard error ((H, W, C))."""
+        c = len(self.channels)
+        ka, ks, gg, br = check_render_args(c, kappa_a, kappa_s, g, brightness)
+        order1 = self._order1(ka, ks, gg, single)
+        share, err = np.full(c, np.nan), np.full(c, np.nan)
+        img, img_err = np.zeros((*self.shape, c)), np.zeros((*self.shape, c))
+        for k in range(c):
+            if ks[k] <= 0:
+                continue
             kt, a = ka[k] + ks[k], ks[k] / (ka[k] + ks[k])
             orders = self.orders(kt, gg[k], seed=seed, rr_albedo=a)
-            pw = a ** np.arange(orders.shape[1])
-            pw[0] = 0.0
-            sums = np.array([self.upsample(r)[glow].sum()
-                             for r in self.smoothed(np.tensordot(orders, pw, axes=([1], [0])))])
-            per = sums / (sums + order1[glow].sum())
-            share[k] = sums.mean() / (sums.mean() + order1[glow].sum())
-            err[k] = per.std(ddof=1) / math.sqrt(len(per))
-        return share, err
+            share[k], err[k] = self._share_of(orders, a, *order1[k])
+            m, e = self.combine(orders, a)
+            img[..., k], img_err[..., k] = (m * br[k]).reshape(self.shape), \
+                (e * abs(br[k])).reshape(self.shape)
+        return share, err, img, img_err
+
+    def _order1(self, ka, ks, gg, single: SingleScattering | None
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per channel: the analytic order 1 (H*W,) for a unit bulb and the glow's pixels (off
+        the bulb, order 1 above 1e-3 of its brightest), for :meth:`_share_of`."""
+        c = len(self.channels)
+        single = single or SingleScattering(self.spec, self._image_index, channels=self.channels)
+        one = single.render(ka, ks, gg, np.ones(c))
+        direct = single.render(ka + ks, np.zeros(c), gg, np.ones(c))
+        out = []
+        for k in range(c):
+            order1 = (one[..., k] - direct[..., k]).ravel()
+            off = direct[..., k].ravel() <= 0
+            out.append((order1, off & (order1 > 1e-3 * order1[off].max(initial=0.0))))
+        return out
+
+    def _share_of(self, orders: np.ndarray, albedo: float, order1: np.ndarray,
+                  glow: np.ndarray) -> tuple[float, float]:
+        """The term's share of the glow from one channel's trace ``orders``, and its standard
+        error from the batches."""
+        pw = albedo ** np.arange(orders.shape[1])
+        pw[0] = 0.0
+        sums = np.array([self.upsample(r)[glow].sum()
+                         for r in self.smoothed(np.tensordot(orders, pw, axes=([1], [0])))])
+        one = order1[glow].sum()
+        if not sums.mean() + one > 0:  # no glow at all (kappa_s ~ 0): no term in it either
+            return 0.0, 0.0
+        per = np.divide(sums, sums + one, out=np.zeros_like(sums), where=sums + one > 0)
+        return float(sums.mean() / (sums.mean() + one)), float(per.std(ddof=1) / math.sqrt(len(per)))
 
     def render(self, kappa_a, kappa_s, g, brightness, *, seed: int = 0
                ) -> tuple[np.ndarray, np.ndarray]:

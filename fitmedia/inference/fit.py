@@ -272,6 +272,8 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
         res, transport = _full_transport(problem, space, res, spec, channel, options, seed, alt)
         if transport["model_used"] == "full":
             alt = None  # the other g mode was judged with single scattering only
+    elif forward is None and spec.light.type == "bulb":
+        transport = _single_ms_check(problem, res, spec, channel, seed)
     other_mode = None if alt is None else {
         "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
         "delta_log_posterior": float(alt.log_posterior - res.log_posterior)}
@@ -484,6 +486,21 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                               "g": float(np.tanh(res.x[2]) - np.tanh(loop_x[2]))},
                ms_images=ms_images(problem, res.x), full_other_g_mode=other_g)
     return res, out
+
+
+def _single_ms_check(problem: ChannelProblem, res, spec: Spec, channel: str, seed: int
+                     ) -> dict:
+    """``--model single``: the multiple-scattering share at the MAP ``res`` and how far chi2/
+    pixel would rise were that term in the images (inference/full.py: ``ms_detectability``;
+    trust.py judges it).  The same random numbers as ``--model auto``'s share."""
+    from .full import ms_detectability
+
+    ms_seed = int(np.random.default_rng([seed, CHANNELS.index(channel), 5]).integers(2**31, size=2)[0])
+    det = ms_detectability(problem, res.x, spec, channel, seed=ms_seed)
+    return {"model_used": "single", "ms_share_single_map": det["share"],
+            "ms_share": det["share"], "ms_share_se": det["share_se"],
+            "ms_chi2_excess": det["chi2_excess_per_pixel"],
+            "ms_declared_single_render": spec.synthetic_model == "single"}
 
 
 def _log_posterior_refreshed(problem: ChannelProblem, x: np.ndarray) -> float:

@@ -86,9 +86,14 @@ def use_full_transport(problem: ChannelProblem, spec, channel: str, *, seed: int
     from ..forward.multiple import FullTransport
 
     for i, o in enumerate(problem.obs):
-        cam = spec.camera_for(i)
-        b = max(1, round(min(cam.width / TRACE_WIDTH, cam.height / TRACE_HEIGHT)))
-        o.model = FullTransport(spec, i, channels=(channel,), seed=seed, single=o.model, bin=b)
+        o.model = FullTransport(spec, i, channels=(channel,), seed=seed, single=o.model,
+                                bin=trace_bin(spec.camera_for(i)))
+
+
+def trace_bin(cam) -> int:
+    """Camera pixels per traced sample pixel (each way): a grid of about ``TRACE_WIDTH`` x
+    ``TRACE_HEIGHT`` sample pixels."""
+    return max(1, round(min(cam.width / TRACE_WIDTH, cam.height / TRACE_HEIGHT)))
 
 
 def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult, *,
@@ -224,6 +229,61 @@ def ms_share(problem: ChannelProblem, u: np.ndarray, spec, channel: str, *, seed
         shares.append(float(share[0]))
         errors.append(float(err[0]))
     return shares, errors
+
+
+def ms_detectability(problem: ChannelProblem, u: np.ndarray, spec, channel: str, *,
+                     seed: int) -> dict:
+    """For a single-scattering fit at its MAP ``u``: would its images show the multiple-
+    scattering term that the single model leaves out, were it there?
+
+    The term ``M`` at ``u`` (one trace per image, on the full model's grid) is what a
+    photograph of this medium holds beyond the model.  The single model is fitted again
+    (local search from ``u``, quadrature re-adapted once) to noise-free what-if images, its
+    own images at ``u`` plus ``M``, with the likelihood's noise; what it cannot absorb is the
+    rise of chi2/pixel at the MAP that the term would cause: ``excess = (chi2 - sum(se_M^2 /
+    var)) / N``, the term's own Monte Carlo variance subtracted, floored at 0.  It is exact
+    only where ``u`` is the truth; where the images hold the term, ``u`` has already absorbed
+    it and the what-if holds it twice (measured in docs/results.md, "trust"; trust.py allows
+    for both: ``MS_DETECT_FACTOR``).  The problem's quadrature is left adapted at ``u``.
+
+    Returns ``share`` and ``share_se`` per image (:meth:`MultipleScattering.share`, 0 where
+    the medium does not scatter) and ``chi2_excess_per_pixel``."""
+    from ..forward.multiple import MultipleScattering
+    from .likelihood import Observation
+
+    p = problem.space.to_params(u)
+    b = p.brightness if problem.space.free_brightness else problem.brightness
+    shares, errors, whatif, term_var = [], [], [], []
+    for i, (o, img0) in enumerate(zip(problem.obs, problem.render(u))):
+        ks = o.concentration * p.kappa_s
+        term, se = np.zeros_like(img0), np.zeros_like(img0)
+        share = err = 0.0
+        if ks > 0:
+            ms = MultipleScattering(spec, i, channels=(channel,),
+                                    bin=trace_bin(spec.camera_for(i)))
+            sh, sh_se, img, img_se = ms.share_and_render(
+                [o.concentration * p.kappa_a + problem.water_kappa_a], [ks], [p.g], [b],
+                seed=seed, single=getattr(o.model, "single", o.model))
+            share, err, term, se = float(sh[0]), float(sh_se[0]), img[..., 0], img_se[..., 0]
+        shares.append(share)
+        errors.append(err)
+        whatif.append(Observation(o.model, img0 + term, o.valid, o.concentration, o.gain,
+                                  o.read_var))
+        term_var.append(se.ravel()[o.flat_idx] ** 2)
+    other = ChannelProblem(whatif, problem.space, problem.brightness,
+                           (problem.gain, problem.read_var), water_kappa_a=problem.water_kappa_a)
+    other._noise = problem._noise  # the real images' variance floors, not the what-if's
+    res = find_map(other.log_posterior, u, problem.space.lower, problem.space.upper,
+                   global_evals=0, laplace=False)
+    other.adapt(res.x)
+    res = find_map(other.log_posterior, res.x, problem.space.lower, problem.space.upper,
+                   global_evals=0, laplace=False)
+    problem.adapt(u)
+    chi2, n = other.chi2(res.x)
+    mc = sum(float(np.sum(v / other.variance(k, m.ravel()[o.flat_idx])))
+             for k, (o, v, m) in enumerate(zip(whatif, term_var, other.render(res.x))))
+    return {"share": shares, "share_se": errors,
+            "chi2_excess_per_pixel": max(chi2 - mc, 0.0) / max(n, 1)}
 
 
 def seed_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult, spec,

@@ -12,8 +12,8 @@ import numpy as np
 from ..version import __version__
 from ..regimes import regime, tank_optical_depths
 from ..spec import CHANNELS
-from ..trust import (misfit_checks, transport_reasons, not_separable_note, reduced_from_laplace,
-                     reduced_from_samples, separable)
+from ..trust import (log_kappa_s_sd, misfit_checks, not_separable_note, reduced_from_laplace,
+                     reduced_from_samples, separable, single_scattering_checks, transport_reasons)
 from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
 from .params import ALBEDO_UNIFORM_WEIGHT
@@ -86,6 +86,11 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
         info["multiple_scattering"] = {
             "share": f.get("ms_share"), "share_se": f.get("ms_share_se"),
             "share_at_single_scattering_map": f.get("ms_share_single_map"),
+            **({"chi2_excess_if_present": f["ms_chi2_excess"],
+                "capture_declared_single_scattering_render": f["ms_declared_single_render"],
+                "kappa_s_log_sd": log_kappa_s_sd(phys.get("kappa_s"), f["x_map"],
+                                                 f.get("laplace_cov"), f["names"])}
+               if "ms_chi2_excess" in f else {}),
             **({"refreshes": f["full_refreshes"], "converged": f["full_converged"],
                 "moves_sd": f["full_moves_sd"], "moves_term_units": f.get("full_moves_term"),
                 "seed_shift_sd": f["ms_seed_shift_sd"],
@@ -203,11 +208,13 @@ def assess(params: dict, chans: dict[str, dict], images: list[dict], model: str,
     biased by an unknown amount."""
     checks, reasons = misfit_checks(chans, images, model, robust=robust)
     reasons += transport_reasons(chans)
+    ms_reasons, ms_notes = single_scattering_checks(chans, checks)
+    reasons += ms_reasons
     for ch, c in checks.items():
         if c["ok"] is False:
             chans[ch]["optical_depth_regime"] = None
     notes = [not_separable_note(ch, params["kappa_s_reduced"][ch]) for ch, info in chans.items()
-             if info.get("kappa_s_g_separable") is False]
+             if info.get("kappa_s_g_separable") is False] + ms_notes
     return {"ok": not reasons, "model": model, "reasons": reasons, "notes": notes,
             "misfit": checks}
 

@@ -344,7 +344,8 @@ def _trust_causes(results: dict) -> str:
 
 
 def _ms_section(results: dict) -> str:
-    """The multiple-scattering term per channel (``--model full`` / ``auto``), as a table."""
+    """The multiple-scattering term per channel (``--model full`` / ``auto``, and the single-
+    scattering check of ``--model single``), as a table."""
     chans = results.get("diagnostics", {}).get("channels", {})
     ms = {ch: info["multiple_scattering"] for ch, info in chans.items()
           if isinstance(info.get("multiple_scattering"), dict)}
@@ -363,6 +364,11 @@ def _ms_section(results: dict) -> str:
         ("Share of the glow (per image)", lambda i, c: per_image(i.get("share"), i.get("share_se"))),
         ("Share at the single-scattering MAP", lambda i, c: per_image(
             i.get("share_at_single_scattering_map"))),
+        ("Rise of &chi;&sup2;/pixel were it in the images (single scattering)",
+         lambda i, c: _cell(_num(i.get("chi2_excess_if_present")), 3)),
+        ("Capture declares a single-scattering render",
+         lambda i, c: {True: "yes", False: "no"}.get(
+             i.get("capture_declared_single_scattering_render"), "&mdash;")),
         ("Refreshes of the term", lambda i, c: _cell(i.get("refreshes"))),
         ("Refreshes settled", lambda i, c: _cell(i.get("converged"))),
         ("Last move [posterior sd]", lambda i, c: _cell(_num((i.get("moves_sd") or [None])[-1]), 3)),
@@ -387,7 +393,10 @@ def _ms_section(results: dict) -> str:
               "intervals) gives it; a second fit far from the first means the images do not "
               "decide between them; the last refreshes trace more paths, which removes most of "
               "the offset the term's own noise gives the values, and their move is how far "
-              "that went (docs/inference.md).</p>\n")
+              "that went (docs/inference.md); with single scattering, the rise of "
+              "&chi;&sup2;/pixel is what the term would cause were it in the images, which the "
+              "misfit guard sees only where it is well above the guard's room (docs/results.md, "
+              "'The single-scattering check').</p>\n")
 
 
 def _term_sd_cell(sd: Any) -> str:
