@@ -169,3 +169,35 @@ def staged_output_dir(path: str | Path, flag: str = "--out") -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
+
+
+#: glibc's malloc: blocks up to this size come from the heap, not from fresh mmap pages
+MALLOC_MMAP_THRESHOLD = 1 << 30
+#: and up to this much freed memory at the heap's top is kept for the next allocation
+MALLOC_TRIM_THRESHOLD = 1 << 30
+_MALLOC_TUNED = False
+
+
+def keep_freed_memory() -> bool:
+    """Let glibc's malloc keep freed memory for reuse (``mallopt`` M_MMAP_THRESHOLD and
+    M_TRIM_THRESHOLD, ``MALLOC_*`` above), once per process; False where that is not glibc.
+
+    The multiple-scattering tracer allocates and frees arrays of hundreds of MB per trace;
+    by default each comes from fresh mmap pages whose first touch the kernel zero-fills.
+    Measured (bench/trace_malloc.py, 2026-12-02, idle 2 cores, one trace at 48 x 64 sample
+    pixels and 256 paths): 1.91 s wall (0.77 s system) by default, 1.42 s (0.09 s) with the
+    freed memory kept; peak RSS 943 -> 1064 MB.
+    """
+    global _MALLOC_TUNED
+    if _MALLOC_TUNED:
+        return True
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        ok = libc.mallopt(-3, MALLOC_MMAP_THRESHOLD) == 1 and \
+            libc.mallopt(-1, MALLOC_TRIM_THRESHOLD) == 1  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
+    except (OSError, AttributeError):
+        return False
+    _MALLOC_TUNED = bool(ok)
+    return _MALLOC_TUNED

@@ -73,6 +73,18 @@ def test_share_and_render_agree_with_share_and_render_alone(seed):
         assert ms._share_of(zeros, 0.5, np.zeros(n), np.zeros(n, bool)) == (0.0, 0.0)
 
 
+def test_trace_in_chunks_is_the_trace_in_one_piece(monkeypatch, seed):
+    """PathTracer.trace in chunks of 1000 paths (the random numbers drawn by path id) against
+    the same trace in one piece: equal to rounding (only the order of the sums differs)."""
+    _, ms = _small()
+    whole = ms.orders(MILK["kt"], MILK["g"], seed=seed)
+    monkeypatch.setattr(ms_paths, "TRACE_CHUNK", 1000)
+    assert ms.tracer.n_pix * ms.n_paths > 5 * 1000  # several chunks
+    chunked = ms.orders(MILK["kt"], MILK["g"], seed=seed)
+    assert chunked.shape == whole.shape and whole.any()
+    np.testing.assert_allclose(chunked, whole, rtol=1e-9, atol=1e-15 * np.abs(whole).max())
+
+
 def test_albedo_to_zero_is_linear(seed):
     """albedo -> 0: the term -> 0 like albedo (only order 1 via the front wall is linear in it;
     it is ~3e-4 of order 2 for milk here, so the limit shows below albedo ~1e-6): term(2a) / term(a)
