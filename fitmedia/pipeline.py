@@ -194,7 +194,7 @@ def _write(dest: Path, out_dir, prep, fits: dict, result: FitResult, options: Fi
         if report:
             from .report import write_report
 
-            write_report(stage)
+            write_report(stage, folder=Path(out_dir))  # the folder it ends in
     if options.mcmc:
         _remove_other_checkpoints(dest, fits)
 

@@ -296,7 +296,7 @@ def _fmt(value: Any, spec: str) -> str:
     return "?" if v is None else format(v, spec)
 
 
-def _header(results: dict, rpath: Path) -> str:
+def _header(results: dict, rpath: Path, folder: str | Path | None = None) -> str:
     wall = _num(results.get("wall_time_s"))
     wall_txt = "&mdash;" if wall is None else f"{wall:.1f} s ({wall / 60:.1f} min)"
     if results.get("date"):
@@ -311,7 +311,7 @@ def _header(results: dict, rpath: Path) -> str:
     items = [
         ("Capture", html.escape(str(results.get("name", "")))),
         ("Spec", f"<code>{html.escape(str(results.get('spec', '')))}</code>"),
-        ("Output folder", f"<code>{html.escape(str(rpath.parent))}</code>"),
+        ("Output folder", f"<code>{html.escape(str(folder or rpath.parent))}</code>"),
         ("Model", html.escape(str(results.get("model", "")))),
         ("Date of fit", date),
         ("fitmedia version", version),
@@ -667,13 +667,13 @@ def _calibration_section(results: dict, samples: dict[str, np.ndarray]) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
-def render_report(out_dir: str | Path) -> str:
+def render_report(out_dir: str | Path, folder: str | Path | None = None) -> str:
     """The report's HTML text for the fit output in ``out_dir`` (see :func:`write_report`)."""
     out = Path(out_dir)
     results, samples, images = load_outputs(out)
     now = _dt.datetime.now().astimezone()
     body = "\n".join([
-        _header(results, out / "results.json"),
+        _header(results, out / "results.json", folder),
         _warnings(results, samples),
         _estimates(results, samples),
         _corner_section(results, samples),
@@ -691,7 +691,7 @@ def render_report(out_dir: str | Path) -> str:
             "</html>\n")
 
 
-def write_report(out_dir: str | Path) -> Path:
+def write_report(out_dir: str | Path, folder: str | Path | None = None) -> Path:
     """Write ``out_dir/report.html`` from the fit output in ``out_dir`` and return its path.
 
     Parameters
@@ -701,6 +701,9 @@ def write_report(out_dir: str | Path) -> Path:
         ``samples.npz`` and ``fit_images.npz`` (CAPTURE_SPEC.md).  A MAP-only fit
         (``--no-mcmc``, no posterior samples) gives a report without intervals and
         corner plots.
+    folder : str or Path, optional
+        The folder the report names as the output folder (default ``out_dir``): ``fit``
+        writes into a staging folder that is moved to ``--out`` at the end.
 
     Returns
     -------
@@ -713,7 +716,7 @@ def write_report(out_dir: str | Path) -> Path:
     InputError
         One of the three files is missing or unreadable; the message names it.
     """
-    text = render_report(out_dir)
+    text = render_report(out_dir, folder)
     path = Path(out_dir) / "report.html"
     atomic_write_text(path, text.encode("ascii", "xmlcharrefreplace").decode("ascii"))
     return path
