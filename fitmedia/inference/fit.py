@@ -440,9 +440,7 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     from .full import (AUTO_SHARE, distance_sd, more_paths, ms_images, ms_share, refine_map,
                        restart_shift, seed_shift, term_jackknife, use_full_transport)
 
-    # the term's random numbers: streams of their own, so the chains' draws do not move
-    ms_seed, check_seed = (int(s) for s in np.random.default_rng(
-        [seed, CHANNELS.index(channel), 5]).integers(2**31, size=2))
+    ms_seed, check_seed = _ms_seeds(seed, channel)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
     out = {"model_used": "single", "ms_share_single_map": share}
     if options.model == "auto" and max(share) <= AUTO_SHARE:
@@ -488,6 +486,13 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     return res, out
 
 
+def _ms_seeds(seed: int, channel: str) -> tuple[int, int]:
+    """The multiple-scattering term's seeds of one channel's fit (the term's own and the seed-
+    shift check's): streams of their own, so the chains' draws do not move."""
+    a, b = np.random.default_rng([seed, CHANNELS.index(channel), 5]).integers(2**31, size=2)
+    return int(a), int(b)
+
+
 def _single_ms_check(problem: ChannelProblem, res, spec: Spec, channel: str, seed: int
                      ) -> dict:
     """``--model single``: the multiple-scattering share at the MAP ``res`` and how far chi2/
@@ -495,8 +500,7 @@ def _single_ms_check(problem: ChannelProblem, res, spec: Spec, channel: str, see
     trust.py judges it).  The same random numbers as ``--model auto``'s share."""
     from .full import ms_detectability
 
-    ms_seed = int(np.random.default_rng([seed, CHANNELS.index(channel), 5]).integers(2**31, size=2)[0])
-    det = ms_detectability(problem, res.x, spec, channel, seed=ms_seed)
+    det = ms_detectability(problem, res.x, spec, channel, seed=_ms_seeds(seed, channel)[0])
     return {"model_used": "single", "ms_share_single_map": det["share"],
             "ms_share": det["share"], "ms_share_se": det["share_se"],
             "ms_chi2_excess": det["chi2_excess_per_pixel"],
