@@ -384,8 +384,8 @@ class PathTracer:
 
         The paths are traced in chunks of at most ``TRACE_CHUNK`` (their random numbers are
         drawn by path id, so the chunks change only the order of the sums): the memory of a
-        trace is bounded whatever the paths per pixel (measured: 12 GB at 4096 paths on a
-        48 x 64 grid in one piece)."""
+        trace is bounded whatever the paths per pixel (measured: 11.7 GB peak RSS at 4096 paths
+        on a 45 x 60 grid in one piece, 1.7 GB in chunks)."""
         n = self.n_pix * n_per_pixel
         acc = np.zeros((batches, max_order + 2, self.n_pix))
         entered = np.zeros(self.n_pix)

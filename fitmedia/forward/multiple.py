@@ -164,16 +164,8 @@ class MultipleScattering:
 
         ``single``: the analytic model of the same image and channels (built if None).
         """
-        c = len(self.channels)
-        ka, ks, gg, _ = check_render_args(c, kappa_a, kappa_s, g, 1.0)
-        order1 = self._order1(ka, ks, gg, single)
-        share, err = np.full(c, np.nan), np.full(c, np.nan)
-        for k in range(c):
-            if ks[k] <= 0:
-                continue
-            kt, a = ka[k] + ks[k], ks[k] / (ka[k] + ks[k])
-            share[k], err[k] = self._share_of(self.orders(kt, gg[k], seed=seed, rr_albedo=a), a,
-                                              *order1[k])
+        share, err, _, _ = self.share_and_render(kappa_a, kappa_s, g, 1.0, seed=seed,
+                                                 single=single)
         return share, err
 
     def share_and_render(self, kappa_a, kappa_s, g, brightness, *, seed: int = 0,
