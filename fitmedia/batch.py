@@ -364,7 +364,9 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     n_workers : int
         Worker processes of the local cluster.
     options : FitOptions, optional
-        Fit settings (default ``FitOptions()``); in a round ``seed`` becomes the round's,
+        Fit settings (default ``FitOptions(model="single")``: validate checks the single-
+        scattering fit on its own renders unless told otherwise, where ``fit``'s default is
+        ``auto``); in a round ``seed`` becomes the round's,
         ``workers`` 1, ``progress`` False.  ``options.progress`` shows a bar over the rounds.
     tank_ml : float
         Water in the tank, ml.
@@ -390,7 +392,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     from .spec import load_spec
     from .validate import Score, write_coverage
 
-    options = options or FitOptions()
+    options = options or FitOptions(model="single")
     names = _check_validate_args(media, rounds, ml, seed, tank_ml, options)
     synth_model, synth_spp = synth_choice(options.model, synth_model, synth_spp)
     _check_runner(scheduler, n_workers)

@@ -105,8 +105,10 @@ def cmd_fit(a) -> int:
     res = fit(a.spec, a.out, opts, report=not a.no_report)
     out = Path(a.out)
     print(f"wrote {out / 'results.json'}" + ("" if a.no_report else f" and {out / 'report.html'}"))
-    from .trust import print_values, print_verdict
+    from .trust import model_lines, print_values, print_verdict
 
+    for line in model_lines(res):
+        print(line)
     print_values(res)
     if "converged" in res["diagnostics"] and not res["diagnostics"]["converged"]:
         print("warning: the sampler did not converge; see diagnostics in results.json",
@@ -132,8 +134,10 @@ def cmd_demo(a) -> int:
     res = fit(spec, a.out, FitOptions(seed=a.seed, progress=not a.quiet))
     print(f"wrote {Path(a.out) / 'results.json'} and {Path(a.out) / 'report.html'} "
           f"({res['wall_time_s']:.0f} s)")
-    from .trust import print_verdict
+    from .trust import model_lines, print_verdict
 
+    for line in model_lines(res):
+        print(line)
     return print_verdict(res)  # 1 when the misfit guard fired
 
 
@@ -164,7 +168,7 @@ def _fit_options(a, **kw) -> FitOptions:
                       model=a.model, **kw)
 
 
-def _add_runner_args(p) -> None:
+def _add_runner_args(p, model: str = DEFAULTS.model) -> None:
     p.add_argument("--scheduler", default=None,
                    help="Dask scheduler address (tcp://host:8786); default: a local cluster; "
                         "'serial' (batch.SERIAL): no Dask, one task after the other in this "
@@ -175,8 +179,8 @@ def _add_runner_args(p) -> None:
     p.add_argument("--n-tau", type=_finite, default=DEFAULTS.n_tau,
                    help="chain length in autocorr. times")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--model", choices=["single", "full", "auto"], default=DEFAULTS.model,
-                   help="forward model of every fit (as for fit)")
+    p.add_argument("--model", choices=["single", "full", "auto"], default=model,
+                   help=f"forward model of every fit (as for fit; default {model})")
 
 
 def add_validate_parser(sub) -> None:
@@ -201,7 +205,7 @@ def add_validate_parser(sub) -> None:
     p.add_argument("--optical-depth", type=_finite, nargs=2, default=None, metavar=("LO", "HI"),
                    help="draw each round's ml so that the G channel's optical depth from the "
                         "light to the front wall is log-uniform in LO-HI (instead of 8-240 ml)")
-    _add_runner_args(p)
+    _add_runner_args(p, model="single")  # round trips of the single fit on its own renders
     p.set_defaults(func=cmd_validate)
 
 
@@ -343,7 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--model", choices=["single", "full", "auto"], default=DEFAULTS.model,
                    help="single: analytic single scattering; full: plus the multiple-scattering "
                         "term, refreshed around the MAP; auto: full when the term's share of the "
-                        "glow at the single-scattering MAP is above 2 %%")
+                        "glow at the single-scattering MAP is above 2 %% (default; single for "
+                        "a spot or a capture that declares a single-scattering render)")
     f.add_argument("--seed", type=_seed, default=DEFAULTS.seed)
     f.add_argument("--no-mcmc", action="store_true", help="MAP only, no posterior sampling")
     f.add_argument("--no-report", action="store_true")

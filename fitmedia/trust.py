@@ -386,6 +386,23 @@ def value_line(results: dict, ch: str) -> str:
             f"kappa_s={_value(p['kappa_s'][ch], key)} g={_value(p['g'][ch], key, '.3f')} {what}")
 
 
+def model_lines(results: dict) -> list[str]:
+    """``--model auto``: per channel, the model it used and why (results.json's
+    ``diagnostics.channels.<ch>.multiple_scattering.auto_reason``); else nothing."""
+    if results.get("model") != "auto":
+        return []
+    chans = results.get("diagnostics", {}).get("channels", {})
+    lines = []
+    for ch in results.get("channels", []):
+        info = chans.get(ch, {})
+        reason = (info.get("multiple_scattering") or {}).get("auto_reason")
+        if reason:
+            used = {"full": "full transport", "single": "single scattering"}.get(
+                info.get("model_used"), str(info.get("model_used")))
+            lines.append(f"model auto, channel {ch}: {used}, as {reason}")
+    return lines
+
+
 def print_values(results: dict) -> None:
     """Print every channel's :func:`value_line`."""
     for ch in results["channels"]:

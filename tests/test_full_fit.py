@@ -146,23 +146,82 @@ def _fit(spec: Path, out: Path, *extra: str) -> tuple[int, dict]:
     return rc, json.loads((out / "results.json").read_text())
 
 
-def test_auto_stays_single_on_a_thin_merlot(tmp_path):
-    """A thin Merlot dilution (kappa_s only in R, 0 in G and B) scatters too little for the
-    multiple-scattering term to matter: ``--model auto`` keeps single scattering and reports
-    the share (from the tracer) below AUTO_SHARE in every channel."""
-    geom = tmp_path / "geom.yaml"
+def _synth_undeclared(tmp_path: Path, medium: str, ml: str, light: dict | None = None,
+                      size: tuple[int, int] = (24, 18)) -> Path:
+    """``fitmedia synth`` (single scattering) of ``medium`` at ``ml``, with the spec's
+    ``synthetic`` block removed: a capture that, like a photograph, does not say what
+    rendered it.  Returns the spec's path."""
     import yaml
 
     from conftest import geometry_dict
-    geom.write_text(yaml.safe_dump(geometry_dict(24, 18)))
-    assert main(["synth", str(geom), "--medium", "Merlot", "--ml", "200", "--seed", "3",
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    geom = tmp_path / "geom.yaml"
+    geom.write_text(yaml.safe_dump(geometry_dict(*size, light=light)))
+    assert main(["synth", str(geom), "--medium", medium, "--ml", ml, "--seed", "3",
                  "--out", str(tmp_path / "cap")]) == 0
-    rc, res = _fit(tmp_path / "cap" / "capture.yaml", tmp_path / "fit", "--model", "auto")
-    assert res["model_used"] == "single"
+    spec = tmp_path / "cap" / "capture.yaml"
+    raw = yaml.safe_load(spec.read_text())
+    assert raw.pop("synthetic") == {"model": "single"}
+    spec.write_text(yaml.safe_dump(raw))
+    return spec
+
+
+def test_auto_stays_single_on_a_thin_merlot(tmp_path, capsys):
+    """A thin Merlot dilution (kappa_s only in R, 0 in G and B) scatters too little for the
+    multiple-scattering term to matter: ``--model auto`` (the default, so no ``--model``
+    here) keeps single scattering and reports the share (from the tracer) below AUTO_SHARE
+    in every channel, and why, in results.json and on the terminal.  The capture does not
+    declare what rendered it, so auto decides by the share."""
+    spec = _synth_undeclared(tmp_path, "Merlot", "200")
+    rc, res = _fit(spec, tmp_path / "fit")
+    assert res["model"] == "auto" and res["model_used"] == "single"
+    out = capsys.readouterr().out
     for ch, info in res["diagnostics"]["channels"].items():
         assert info["model_used"] == "single"
-        share = info["multiple_scattering"]["share"][0]
+        ms = info["multiple_scattering"]
+        share = ms["share"][0]
         assert 0.0 <= share <= AUTO_SHARE, (ch, share)
+        assert "at or below 2 %" in ms["auto_reason"]
+        assert f"model auto, channel {ch}: single scattering, as the multiple-scattering " \
+               "share" in out
+
+
+def test_auto_keeps_single_for_a_declared_render_and_a_spot(tmp_path, capsys):
+    """Where ``--model auto`` keeps single scattering without tracing the term
+    (inference/fit.py: auto_stays_single), and says why:
+
+    * a capture that declares a single-scattering render (``synthetic.model: single``, as
+      ``fitmedia synth`` writes) of Lowfat Milk 16 ml, whose share at the MAP is far above
+      AUTO_SHARE: the single model is the exact one for its images, and the
+      single-scattering check's note says what a photograph would hold;
+    * a spot (the term is implemented for a bulb only): before auto became the default,
+      ``--model auto`` on a spot was an input error (exit 2); now it fits single scattering
+      and says the term was not checked."""
+    import yaml
+
+    from conftest import geometry_dict
+    geom = tmp_path / "geom.yaml"
+    geom.write_text(yaml.safe_dump(geometry_dict(24, 18)))
+    assert main(["synth", str(geom), "--medium", "Lowfat Milk", "--ml", "16", "--seed", "3",
+                 "--out", str(tmp_path / "cap")]) == 0
+    rc, res = _fit(tmp_path / "cap" / "capture.yaml", tmp_path / "fit")
+    assert rc == 0 and res["model"] == "auto" and res["model_used"] == "single"
+    ms = res["diagnostics"]["channels"]["G"]["multiple_scattering"]
+    assert "declares a single-scattering render" in ms["auto_reason"]
+    assert ms["capture_declared_single_scattering_render"] is True
+    assert max(ms["share"]) > AUTO_SHARE  # the term would be large in a photograph
+    assert any("synthetic.model: single" in n for n in res["trust"]["notes"])
+    assert "model auto, channel G: single scattering, as the capture declares" in \
+        capsys.readouterr().out
+
+    spot = _synth_undeclared(tmp_path / "spot", "Lowfat Milk", "16", size=(16, 12), light={
+        "type": "spot", "position": [-40, 0, 0], "direction": [1, 0, 0], "cutoff_deg": 20})
+    rc, res = _fit(spot, tmp_path / "spotfit")
+    assert rc in (0, 1) and res["model_used"] == "single"
+    for info in res["diagnostics"]["channels"].values():
+        assert "light.type spot" in info["multiple_scattering"]["auto_reason"]
+    assert main(["fit", str(spot), "--out", str(tmp_path / "spotfull"), "--model", "full",
+                 "--no-mcmc", "--quiet"]) == 2
 
 
 @pytest.mark.slow

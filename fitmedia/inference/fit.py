@@ -70,12 +70,13 @@ def _model(spec: Spec, image_index: int | None, channel: str, options: FitOption
     """The model of one image and channel: ``forward(spec, image_index, channels=(channel,))``
     when a forward-model factory is given (``fitmedia.fit(..., model=...)``), else the analytic
     single scattering: every fit starts with it; ``full`` and ``auto`` wrap it in the
-    full-transport model after the single-scattering MAP."""
+    full-transport model after the single-scattering MAP (``auto``: where
+    :func:`auto_stays_single` does not keep it single)."""
     if options.model not in MODELS:
         raise InputError(f"--model: {options.model!r} is not one of {', '.join(MODELS)}")
     if forward is not None:
         return forward(spec, image_index, channels=(channel,))
-    if options.model != "single" and spec.light.type != "bulb":
+    if options.model == "full" and spec.light.type != "bulb":
         raise InputError(f"--model {options.model}: the multiple-scattering term is implemented "
                          "for light.type bulb only; use --model single for a spot")
     from ..forward.single import SingleScattering
@@ -268,12 +269,17 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     rng = np.random.default_rng([seed, CHANNELS.index(channel)])
     res, alt = search_map(setup, options, rng)
     transport: dict = {}  # --model full / auto: what was used (_full_transport)
-    if options.model != "single" and forward is None:
+    stays = auto_stays_single(spec) if options.model == "auto" else None
+    if options.model != "single" and forward is None and stays is None:
         res, transport = _full_transport(problem, space, res, spec, channel, options, seed, alt)
         if transport["model_used"] == "full":
             alt = None  # the other g mode was judged with single scattering only
     elif forward is None and spec.light.type == "bulb":
         transport = _single_ms_check(problem, res, spec, channel, seed)
+    elif forward is None and stays is not None:
+        transport = {"model_used": "single"}  # a spot: no term to trace
+    if stays is not None and forward is None:
+        transport["auto_reason"] = stays
     other_mode = None if alt is None else {
         "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
         "delta_log_posterior": float(alt.log_posterior - res.log_posterior)}
@@ -444,7 +450,9 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
     out = {"model_used": "single", "ms_share_single_map": share}
     if options.model == "auto" and max(share) <= AUTO_SHARE:
-        out.update(ms_share=share, ms_share_se=share_se)
+        out.update(ms_share=share, ms_share_se=share_se, auto_reason=(
+            f"the multiple-scattering share at the single-scattering MAP, {_pct(max(share))} of "
+            f"the glow, is at or below {_pct(AUTO_SHARE)} (AUTO_SHARE)"))
         return res, out
     use_full_transport(problem, spec, channel, seed=ms_seed)
     single_x = res.x
@@ -471,6 +479,10 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     res, last, paths = more_paths(problem, space, res)
     term_cov = term_jackknife(problem, res)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
+    if options.model == "auto":
+        out["auto_reason"] = (f"the multiple-scattering share at the single-scattering MAP, "
+                              f"{_pct(max(out['ms_share_single_map']))} of the glow, is above "
+                              f"{_pct(AUTO_SHARE)} (AUTO_SHARE)")
     out.update(model_used="full", ms_share=share, ms_share_se=share_se,
                full_refreshes=info.refreshes + last.refreshes,
                full_moves_sd=info.moves_sd + last.moves_sd,
@@ -484,6 +496,31 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                               "g": float(np.tanh(res.x[2]) - np.tanh(loop_x[2]))},
                ms_images=ms_images(problem, res.x), full_other_g_mode=other_g)
     return res, out
+
+
+def auto_stays_single(spec: Spec) -> str | None:
+    """Why ``--model auto`` keeps the single-scattering model for ``spec`` without tracing
+    the multiple-scattering term, else None (auto then decides by the term's share at the
+    single-scattering MAP, ``_full_transport``):
+
+    * the light is not a bulb: the term is implemented for bulbs only (a spot's fit stays
+      single scattering, as before ``auto`` was the default, and says so);
+    * the capture declares a single-scattering render (``synthetic.model: single``, which
+      ``fitmedia synth --model single`` writes): its images hold no multiple scattering, so
+      the single model is the exact one and the full model would add light that is not
+      there.  The single-scattering check still runs and notes the share."""
+    if spec.light.type != "bulb":
+        return (f"light.type {spec.light.type}: the multiple-scattering term is implemented for "
+                "a bulb only, so single scattering was used and not checked for it")
+    if spec.synthetic_model == "single":
+        return ("the capture declares a single-scattering render (synthetic.model: single), "
+                "whose images hold no multiple scattering")
+    return None
+
+
+def _pct(x: float) -> str:
+    """A share as a percentage with two significant figures."""
+    return f"{100 * x:.2g} %"
 
 
 def _ms_seeds(seed: int, channel: str) -> tuple[int, int]:

@@ -43,7 +43,7 @@ class FitOptions:
     (:mod:`fitmedia.inference.identity`).
     """
 
-    model: str = "single"  # single, full or auto (inference/full.py)
+    model: str = "auto"  # single, full or auto (inference/full.py: auto_stays_single)
     seed: int = 0
     mcmc: bool = True  # False: MAP and Laplace approximation only
     robust: bool = False  # Student-t likelihood (nu = 4)

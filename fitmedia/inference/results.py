@@ -86,6 +86,7 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
         info["multiple_scattering"] = {
             "share": f.get("ms_share"), "share_se": f.get("ms_share_se"),
             "share_at_single_scattering_map": f.get("ms_share_single_map"),
+            **({"auto_reason": f["auto_reason"]} if "auto_reason" in f else {}),
             **({"chi2_excess_if_present": f["ms_chi2_excess"],
                 "capture_declared_single_scattering_render": f["ms_declared_single_render"],
                 "kappa_s_log_sd": log_kappa_s_sd(phys.get("kappa_s"), f["x_map"],

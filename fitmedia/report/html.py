@@ -361,6 +361,7 @@ def _ms_section(results: dict) -> str:
 
     fields = [
         ("Model used", lambda i, c: _cell(chans[c].get("model_used"))),
+        ("Why (--model auto)", lambda i, c: _cell(i.get("auto_reason"))),
         ("Share of the glow (per image)", lambda i, c: per_image(i.get("share"), i.get("share_se"))),
         ("Share at the single-scattering MAP", lambda i, c: per_image(
             i.get("share_at_single_scattering_map"))),
