@@ -111,10 +111,12 @@ def forward_factory(model: Any, spec: Spec, options: FitOptions) -> tuple[Any, F
         return None, options
     if isinstance(model, str):
         return None, replace(options, model=model)
-    if options.model != "single":
+    if options.model == "full":
         raise InputError(f"options.model: {options.model!r} with a forward model of your own: "
                          "the multiple-scattering term wraps fitmedia's own model only; "
-                         "use model='single' (the default)")
+                         "use 'single' or 'auto' (the default)")
+    # auto (the default) has no term to add to a model of your own: it is fitted as it is
+    options = replace(options, model="single")
     if hasattr(model, "render") and not isinstance(model, type):  # an instance, not a class
         if len(spec.images) != 1:
             raise InputError(f"model: one {model_name(model)} instance renders one image, the "

@@ -369,8 +369,9 @@ def _value(entry: dict, key: str, digits: str = ".4g") -> str:
 
 def value_line(results: dict, ch: str) -> str:
     """One channel's line of ``fitmedia fit``'s output: kappa_a, kappa_s, g (with their 90 %
-    intervals in brackets when a sampler ran), or kappa_a and kappa_s' where kappa_s and g are
-    not separately measured."""
+    intervals in brackets when a sampler ran), or kappa_t and kappa_s' where kappa_s and g are
+    not separately measured (kappa_a = kappa_t - kappa_s is not either: where g is free, the
+    split of kappa_t into kappa_a and kappa_s moves with it)."""
     p = results["parameters"]
     key = "median" if "median" in p["kappa_s"][ch] else "map"
     what = ("(1/mm, undiluted, median [90 % interval])" if key == "median" else
@@ -380,8 +381,9 @@ def value_line(results: dict, ch: str) -> str:
     if red is not None and info.get("kappa_s_g_separable") is False:
         value = red.get(key, red["map"])
         interval = f" (90 %: {red['q05']:.4g} - {red['q95']:.4g})" if "q05" in red else ""
-        return (f"  {ch}: kappa_a={_value(p['kappa_a'][ch], key)} kappa_s'=kappa_s(1-g)="
-                f"{value:.4g}{interval}; kappa_s and g not separately measured {what}")
+        return (f"  {ch}: kappa_t={_value(p['kappa_t'][ch], key)} kappa_s'=kappa_s(1-g)="
+                f"{value:.4g}{interval}; kappa_s, g and kappa_a = kappa_t - kappa_s not "
+                f"separately measured {what}")
     return (f"  {ch}: kappa_a={_value(p['kappa_a'][ch], key)} "
             f"kappa_s={_value(p['kappa_s'][ch], key)} g={_value(p['g'][ch], key, '.3f')} {what}")
 

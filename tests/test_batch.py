@@ -30,7 +30,7 @@ from fitmedia.errors import InputError
 from fitmedia.inference.fit import FitOptions
 
 MEDIA = ["Lowfat Milk", "Espresso"]
-OPTIONS = FitOptions(max_steps=300, n_tau=5, progress=False)  # reduced: see module docstring
+OPTIONS = FitOptions(model="single", max_steps=300, n_tau=5, progress=False)  # reduced: see module docstring
 # the rounds' ml drawn where the capture is informative: at the default range's dense end
 # (Lowfat Milk 169 ml at 40 x 30) a single-scattering capture is black and is skipped
 # (test_black_round_is_skipped_not_failed)

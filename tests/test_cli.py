@@ -118,12 +118,14 @@ def test_report_of_a_missing_folder(tmp_path, capsys):
 
 
 def test_fit_map_only_writes_the_contract(capture, tmp_path, capsys):
-    """results.json has the fields CAPTURE_SPEC.md requires; MAP only means no sampler fields."""
+    """results.json has the fields CAPTURE_SPEC.md requires; MAP only means no sampler fields.
+    The model is fit's default, auto, which keeps single scattering for this capture (it
+    declares a single-scattering render)."""
     code, out, _ = run(["fit", capture / "capture.yaml", "--out", tmp_path / "o", "--no-mcmc",
                         "--no-report"], capsys)
     assert code == 0 and "results.json" in out
     r = json.loads((tmp_path / "o" / "results.json").read_text())
-    assert r["fitmedia_spec"] == 1 and r["model"] == "single"
+    assert r["fitmedia_spec"] == 1 and r["model"] == "auto" and r["model_used"] == "single"
     assert r["units"] == {"length": "mm", "kappa": "1/mm"}
     assert r["channels"] == ["R", "G", "B"]
     for q in ("kappa_a", "kappa_s", "g", "kappa_t", "albedo"):

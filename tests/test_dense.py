@@ -59,8 +59,8 @@ def test_laplace_against_samples(rng, corr):
 
 def test_cli_line_prints_kappa_s_reduced_when_not_separable():
     """`fitmedia fit`'s line for a channel: kappa_s and g with their 90 % intervals when
-    separable; kappa_s' with its interval and the plain-words caveat, and no kappa_s or g
-    value, when not."""
+    separable; kappa_t and kappa_s' with their intervals and the plain-words caveat, and no
+    kappa_s, g or kappa_a value (kappa_a = kappa_t - kappa_s moves with g too), when not."""
     entry = {"map": 2.0, "median": 2.1, "q05": 1.0, "q95": 3.0}
     res = {"channels": ["G"],
            "parameters": {q: {"G": dict(entry)} for q in ("kappa_a", "kappa_s", "g")},
@@ -70,6 +70,9 @@ def test_cli_line_prints_kappa_s_reduced_when_not_separable():
     line = trust.value_line(res, "G")
     assert "kappa_s=2.1 [1, 3]" in line and "g=2.100 [1.000, 3.000]" in line
     res["diagnostics"]["channels"]["G"]["kappa_s_g_separable"] = False
+    res["parameters"]["kappa_t"] = {"G": {"map": 7.0, "median": 7.1, "q05": 6.9, "q95": 7.3}}
     line = trust.value_line(res, "G")
     assert "kappa_s'=kappa_s(1-g)=0.51 (90 %: 0.49 - 0.53)" in line
+    assert "kappa_t=7.1 [6.9, 7.3]" in line
     assert "not separately measured" in line and "kappa_s=" not in line and " g=" not in line
+    assert "kappa_a=" not in line

@@ -106,7 +106,7 @@ def test_guard_on_full_transport_capture(capture, fires, tmp_path, capsys):
     spec = tmp_path / capture
     shutil.copytree(DATA / capture, spec)
     code = main(["fit", str(spec / "capture.yaml"), "--out", str(tmp_path / "fit"), "--no-mcmc",
-                 "--quiet", "--workers", "1"])
+                 "--quiet", "--workers", "1", "--model", "single"])
     out = capsys.readouterr()
     res = json.loads((tmp_path / "fit" / "results.json").read_text())
     page = (tmp_path / "fit" / "report.html").read_text()

@@ -448,12 +448,15 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
 
     ms_seed, check_seed = _ms_seeds(seed, channel)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
+    above = max(share) > AUTO_SHARE
     out = {"model_used": "single", "ms_share_single_map": share}
-    if options.model == "auto" and max(share) <= AUTO_SHARE:
-        out.update(ms_share=share, ms_share_se=share_se, auto_reason=(
-            f"the multiple-scattering share at the single-scattering MAP, {_pct(max(share))} of "
-            f"the glow, is at or below {_pct(AUTO_SHARE)} (AUTO_SHARE)"))
-        return res, out
+    if options.model == "auto":
+        out["auto_reason"] = (f"the multiple-scattering share at the single-scattering MAP, "
+                              f"{_pct(max(share))} of the glow, is "
+                              f"{'above' if above else 'at or below'} {_pct(AUTO_SHARE)} (AUTO_SHARE)")
+        if not above:
+            out.update(ms_share=share, ms_share_se=share_se)
+            return res, out
     use_full_transport(problem, spec, channel, seed=ms_seed)
     single_x = res.x
     res, info = refine_map(problem, space, res)
@@ -479,10 +482,6 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     res, last, paths = more_paths(problem, space, res)
     term_cov = term_jackknife(problem, res)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
-    if options.model == "auto":
-        out["auto_reason"] = (f"the multiple-scattering share at the single-scattering MAP, "
-                              f"{_pct(max(out['ms_share_single_map']))} of the glow, is above "
-                              f"{_pct(AUTO_SHARE)} (AUTO_SHARE)")
     out.update(model_used="full", ms_share=share, ms_share_se=share_se,
                full_refreshes=info.refreshes + last.refreshes,
                full_moves_sd=info.moves_sd + last.moves_sd,
