@@ -12,6 +12,16 @@ water (docs/testing.md, "Bad-input corpus", gives the runs):
   (prepare, then a channel's problem evaluated) grow by 0.24 kB per pixel and file loaded
   and 1.4 kB per pixel, image and channel fitted at once (parallel worker processes each
   hold their own models).  The chains add at most 2 x 20000 steps x 24 walkers x 7 values.
+* the multiple-scattering tracer (since 2026-12-02 in every fit of a bulb: ``--model
+  single``'s check and ``auto``'s share trace it, ``full`` refreshes it; ``synth --model
+  hybrid``): about 1 GB per process that traces, as it traces in chunks of 2^20 paths and
+  keeps its freed memory (ms_paths.TRACE_CHUNK, util.keep_freed_memory).  Measured at 64 x 48
+  (Lowfat Milk 16 ml, one worker, maximum resident set): ``fit --model single --no-mcmc``
+  1.20 GiB against 0.30 GiB estimated without it; ``synth --model hybrid`` 1.09 GiB against
+  0.15 GiB; ``fit --model full
+  --no-mcmc`` (Espresso 8 ml at 60 x 45, one channel) 1.7 GB.  ``TRACER_MB`` (1400 MiB) is
+  above the largest of those excesses (about 1.7 - 0.3 GB), so the estimate holds for the full
+  model too, and overstates a single fit's peak by about 0.4 GiB.
 """
 
 from __future__ import annotations
@@ -26,6 +36,7 @@ _MB = 2.0**20
 SYNTH_BASE_MB, SYNTH_PER_PIXEL = 137.0, 6.1e3
 FIT_BASE_MB, FIT_PER_PIXEL_FILE, FIT_PER_PIXEL_MODEL = 250.0, 0.24e3, 1.4e3
 CHAIN_BYTES = 2 * 20000 * 24 * 7 * 8
+TRACER_MB = 1400.0  # per process that traces the multiple-scattering term (see above)
 
 
 def physical_memory() -> float | None:
@@ -55,22 +66,28 @@ def memory_limit() -> float | None:
     return gb * 2.0**30
 
 
-def estimate_peak(spec: Spec, command: str, *, workers: int | None = None) -> float:
+def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
+                  tracer: bool | None = None) -> float:
     """Estimated peak memory in bytes of ``command`` ('synth' or 'fit') on ``spec``.
 
     synth renders one image at a time (its peak does not grow with the images); fit counts
     the spec's images, each with its own camera size.  ``workers``: channels fitted at once
-    (default: as many as cores, at most the channels)."""
+    (default: as many as cores, at most the channels).  ``tracer``: whether the multiple-
+    scattering tracer runs (``TRACER_MB`` per process); default: for ``fit``, whenever the
+    light is a bulb; for ``synth``, no (pass True for ``--model hybrid``)."""
+    if tracer is None:
+        tracer = command == "fit" and spec.light.type == "bulb"
+    trace = TRACER_MB * _MB if tracer else 0.0
     if command == "synth":
         px = spec.camera.width * spec.camera.height
-        return SYNTH_BASE_MB * _MB + SYNTH_PER_PIXEL * float(px)
+        return SYNTH_BASE_MB * _MB + SYNTH_PER_PIXEL * float(px) + trace
     sizes = [spec.camera_for(i).width * spec.camera_for(i).height for i in range(len(spec.images))]
     files = sum(len(e.paths) * p for e, p in zip(spec.images, sizes))
     if spec.clear_water is not None:
         files += len(spec.clear_water.paths) * spec.camera.width * spec.camera.height
     par = workers or min(len(spec.channels), os.cpu_count() or 1)
     return (FIT_BASE_MB * _MB + FIT_PER_PIXEL_FILE * float(files)
-            + FIT_PER_PIXEL_MODEL * float(sum(sizes)) * par + CHAIN_BYTES * par)
+            + FIT_PER_PIXEL_MODEL * float(sum(sizes)) * par + (CHAIN_BYTES + trace) * par)
 
 
 def check_memory(spec: Spec, command: str, **kw) -> None:

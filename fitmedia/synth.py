@@ -79,7 +79,7 @@ def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float],
             raise InputError(f"--ml: got {v}: must be a positive volume in ml")
     from .memory import check_memory
 
-    check_memory(spec, "synth")
+    check_memory(spec, "synth", tracer=model == "hybrid")
     rng = make_rng(seed)
     with staged_output_dir(out_dir) as out:  # checked before any work; moved into place at the end
         raw, truth = _write_capture(spec, out, medium, ml, tank_ml=tank_ml, seed=seed, model=model,

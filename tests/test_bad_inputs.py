@@ -125,7 +125,11 @@ def test_memory_estimate_against_measured_peaks(width, height, synth_mb):
     """fitmedia.memory.estimate_peak('synth') within 10 % of the peak resident set measured
     with /usr/bin/time -v for `fitmedia synth` of 2 images at these sizes (fitmedia/memory.py
     gives the runs); the fit's estimate is at least the 262 MB measured for the whole MAP fit
-    at 64 x 48 with one worker, and grows with the workers."""
+    at 64 x 48 with one worker, and grows with the workers.  With the multiple-scattering
+    tracer (every bulb fit since 2026-12-02: the single-scattering check), it is at least the
+    1262616 kB measured for ``fit --model single --no-mcmc --workers 1`` of a bulb capture at
+    64 x 48, and ``synth --model hybrid``'s at least the 1147296 kB measured there
+    (fitmedia/memory.py); without the tracer's term both were 4-7 times below."""
     from fitmedia.memory import estimate_peak
     from fitmedia.spec import parse_spec
     from conftest import geometry_dict
@@ -138,6 +142,10 @@ def test_memory_estimate_against_measured_peaks(width, height, synth_mb):
     spec = parse_spec(d, require_images=False)
     one, three = estimate_peak(spec, "fit", workers=1), estimate_peak(spec, "fit", workers=3)
     assert one / 2**20 >= 262 and three > one
+    assert estimate_peak(spec, "fit", workers=1, tracer=False) / 2**20 >= 262
+    if (width, height) == (64, 48):  # the sizes the tracer's peaks were measured at
+        assert one >= 1262616 * 1024  # /usr/bin/time -v's maximum resident set, kB
+        assert estimate_peak(spec, "synth", tracer=True) >= 1147296 * 1024
 
 
 def test_a_spec_beyond_the_memory_limit_is_refused_up_front(monkeypatch):
