@@ -121,6 +121,29 @@ def test_report_flags_and_notes(fit_outputs, tmp_path):
     assert ("g &asymp; 0.56 with probability 0.855, g &asymp; -0.67 with probability 0.145; "
             "the 99 % intervals reach into both") in text
     assert "probability 0.003; the smaller holds &lt; 0.5 %, outside the 99 % intervals" in text
+    # no channel said "not separately measured": no row greyed
+    assert 'class="alone' not in text and "(not separately measured)" not in text
+
+
+def test_report_greys_what_is_not_separately_measured(fit_outputs, tmp_path):
+    """Where kappa_s and g are not separately measured (results.json kappa_s_g_separable
+    false), the estimates table greys kappa_a, kappa_s, g and the albedo of that channel
+    (each moves with g along the similarity ridge) and says so, and leaves kappa_t and
+    kappa_s' as they are; the other channels are untouched."""
+    import re
+
+    out = _copy(fit_outputs["map"], tmp_path / "fit")
+    results = json.loads((out / "results.json").read_text())
+    results["diagnostics"]["channels"]["G"]["kappa_s_g_separable"] = False
+    (out / "results.json").write_text(json.dumps(results))
+    text = write_report(out).read_text(encoding="ascii")
+    grey = re.findall(r'<tr class="(?:permetre )?alone" data-channel="(\w)" data-quantity="(\w+)"',
+                      text)
+    assert {c for c, _ in grey} == {"G"}
+    assert {q for _, q in grey} == {"kappa_a", "kappa_s", "g", "albedo"}
+    assert len(grey) == 6  # kappa_a and kappa_s in 1/mm and 1/m, g and albedo unitless
+    assert text.count("(not separately measured)") == 6
+    assert "read &kappa;<sub>t</sub> and &kappa;<sub>s</sub>&prime;" in text
 
 
 def test_kappa_a_upper_limit_flag_follows_its_definition(fit_outputs):

@@ -37,7 +37,11 @@ KS_ZERO = "&kappa;<sub>s</sub> consistent with zero"
 CHI2_WARN = (0.5, 2.0)  # chi2 per pixel outside this range is flagged (without results' trust)
 KS_G_NOT_SEPARABLE = ("&kappa;<sub>s</sub> and g not separately measured (the images constrain "
                       "&kappa;<sub>s</sub>&prime; = &kappa;<sub>s</sub>(1&minus;g)): read "
-                      "&kappa;<sub>s</sub>&prime;, not &kappa;<sub>s</sub> and g on their own")
+                      "&kappa;<sub>t</sub> and &kappa;<sub>s</sub>&prime;, not &kappa;<sub>s</sub>, "
+                      "g, &kappa;<sub>a</sub> = &kappa;<sub>t</sub> &minus; &kappa;<sub>s</sub> or "
+                      "the albedo on their own (greyed below)")
+#: the quantities that move with g where kappa_s and g are not separately measured
+NOT_MEASURED_ALONE = ("kappa_a", "kappa_s", "g", "albedo")
 
 CSS = """
 body { font-family: sans-serif; max-width: 1250px; margin: 1em auto; padding: 0 1em;
@@ -48,6 +52,7 @@ table { border-collapse: collapse; margin: 0.5em 0 1em 0; font-size: 0.92em; }
 th, td { border: 1px solid #bbb; padding: 0.2em 0.6em; text-align: left; vertical-align: top; }
 td.num { text-align: right; font-family: monospace; white-space: nowrap; }
 th { background: #f3f3f3; } tr.chan th { background: #e8e8e8; } tr.permetre td { color: #555; }
+tr.alone td { color: #aaa; }
 td:first-child { white-space: nowrap; }
 td.num .txt { white-space: normal; font-family: sans-serif; }
 .warn { background: #fff3cd; border: 1px solid #d9a400; padding: 0.4em 0.8em; margin: 0.3em 0; }
@@ -477,6 +482,8 @@ def _estimates(results: dict, samples: dict[str, np.ndarray]) -> str:
                         for f in _channel_flags(results, ch, samples))
         rows.append(f'<tr class="chan"><th colspan="{ncol}">Channel {html.escape(ch)}{flags}'
                     "</th></tr>\n")
+        info = results.get("diagnostics", {}).get("channels", {}).get(ch, {})
+        ridge = info.get("kappa_s_g_separable") is False
         for q in QUANTITIES + ("kappa_s_reduced",):
             entry = params.get(q, {}).get(ch)
             if entry is None:
@@ -487,7 +494,11 @@ def _estimates(results: dict, samples: dict[str, np.ndarray]) -> str:
                 if entry.get("source") == "laplace" and "q05" in entry:  # kappa_s', --no-mcmc
                     lo, hi = (format_sig(entry[k] * scale, 3) for k in ("q05", "q95"))
                     c["estimate"] += f' <span class="txt">(90 %: {lo} &ndash; {hi}, Laplace)</span>'
-                cls = ' class="permetre"' if scale != 1.0 else ""
+                classes = (["permetre"] if scale != 1.0 else []) + (
+                    ["alone"] if ridge and q in NOT_MEASURED_ALONE else [])
+                if "alone" in classes:
+                    c["estimate"] += ' <span class="txt">(not separately measured)</span>'
+                cls = f' class="{" ".join(classes)}"' if classes else ""
                 cells = [c["estimate"]] + ([c["q68"], c["q90"], c["map"]] if sampled else [])
                 rows.append(f"<tr{cls} data-channel=\"{html.escape(ch)}\" data-quantity=\"{q}\" "
                             f"data-unit=\"{unit}\"><td>{LABELS[q]} <code>{q}</code></td>"
