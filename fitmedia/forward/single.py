@@ -200,20 +200,17 @@ class SingleScattering:
         c = self.light.position
         # samples per pixel side: `sub` everywhere; near the bulb's silhouette `bulb_sub`
         # (the direct view is a discontinuity); in its halo 4 (the glow of a forward-peaked
-        # phase function curves too fast for the second-order footprint correction)
+        # phase function curves too fast for the second-order footprint correction); a spot's
+        # silhouette and apex: ``spot_supersample``.  `zone`: pixels sampled finely
         sub_map = np.full(self.shape, sub)
-        zone = np.zeros(self.shape, bool)
+        centre, _, _ = self._rays(1)
+        h_c = self._closest(centre, c)[1].reshape(self.shape)
+        footprint = np.linalg.norm(c - self.camera.position) * pixel_angle(self.camera)
         if self.light.type == "bulb":
-            centre, _, _ = self._rays(1)
-            h_c = self._closest(centre, c)[1].reshape(self.shape)
-            footprint = np.linalg.norm(c - self.camera.position) * pixel_angle(self.camera)
             zone = h_c < self.light.radius + HALO_FOOTPRINTS * footprint
             sub_map[zone] = max(sub, halo_sub)
             sub_map[h_c < self.light.radius + 2.0 * footprint] = max(sub, bulb_sub)
         else:  # a spot: its cone's silhouette and its apex (a point source, glow ~ 1/h)
-            centre, _, _ = self._rays(1)
-            h_c = self._closest(centre, c)[1].reshape(self.shape)
-            footprint = np.linalg.norm(c - self.camera.position) * pixel_angle(self.camera)
             s_in, s_out = _cone_interval(centre.origin - c, centre.direction,
                                          self.light.direction, self.light.cutoff_deg)
             meets = ((np.minimum(centre.length, s_out) > np.maximum(s_in, 0.0))

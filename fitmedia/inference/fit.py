@@ -269,17 +269,15 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     rng = np.random.default_rng([seed, CHANNELS.index(channel)])
     res, alt = search_map(setup, options, rng)
     transport: dict = {}  # --model full / auto: what was used (_full_transport)
-    stays = auto_stays_single(spec) if options.model == "auto" else None
+    stays = auto_stays_single(spec) if options.model == "auto" and forward is None else None
     if options.model != "single" and forward is None and stays is None:
         res, transport = _full_transport(problem, space, res, spec, channel, options, seed, alt)
         if transport["model_used"] == "full":
             alt = None  # the other g mode was judged with single scattering only
     elif forward is None and spec.light.type == "bulb":
         transport = _single_ms_check(problem, res, spec, channel, seed)
-    elif forward is None and stays is not None:
-        transport = {"model_used": "single"}  # a spot: no term to trace
-    if stays is not None and forward is None:
-        transport["auto_reason"] = stays
+    if stays is not None:  # auto kept single scattering (a spot: no term traced)
+        transport = {"model_used": "single", **transport, "auto_reason": stays}
     other_mode = None if alt is None else {
         "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
         "delta_log_posterior": float(alt.log_posterior - res.log_posterior)}
