@@ -12,7 +12,8 @@ water (docs/testing.md, "Bad-input corpus", gives the runs):
   (prepare, then a channel's problem evaluated) grow by 0.24 kB per pixel and file loaded
   and 1.4 kB per pixel, image and channel fitted at once (parallel worker processes each
   hold their own models).  The chains add at most 2 x 20000 steps x 24 walkers x 7 values.
-* the multiple-scattering tracer (since 2026-12-02 in every fit of a bulb: ``--model
+* the multiple-scattering tracer (since 2026-12-02 in every fit of a bulb, since stop 25 of
+  a spot too: ``--model
   single``'s check and ``auto``'s share trace it, ``full`` refreshes it; ``synth --model
   hybrid``): about 1 GB per process that traces, as it traces in chunks of 2^20 paths and
   keeps its freed memory (ms_paths.TRACE_CHUNK, util.keep_freed_memory).  Measured at 64 x 48
@@ -73,10 +74,10 @@ def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
     synth renders one image at a time (its peak does not grow with the images); fit counts
     the spec's images, each with its own camera size.  ``workers``: channels fitted at once
     (default: as many as cores, at most the channels).  ``tracer``: whether the multiple-
-    scattering tracer runs (``TRACER_MB`` per process); default: for ``fit``, whenever the
-    light is a bulb; for ``synth``, no (pass True for ``--model hybrid``)."""
+    scattering tracer runs (``TRACER_MB`` per process); default: for ``fit``, yes (bulb or
+    spot); for ``synth``, no (pass True for ``--model hybrid``)."""
     if tracer is None:
-        tracer = command == "fit" and spec.light.type == "bulb"
+        tracer = command == "fit"
     trace = TRACER_MB * _MB if tracer else 0.0
     if command == "synth":
         px = spec.camera.width * spec.camera.height

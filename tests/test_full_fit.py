@@ -22,6 +22,8 @@ from conftest import make_spec
 from fitmedia.cli import main
 from fitmedia.forward.single import SingleScattering
 from fitmedia.forward.multiple import DEFAULT_PATHS
+from fitmedia.inference.fit import auto_stays_single
+from fitmedia.spec import load_spec
 from fitmedia.inference.full import (AUTO_SHARE, FINAL_PATHS_FACTOR, MOVE_TOL_SD, refine_map,
                                     restart_shift)
 from fitmedia.inference.likelihood import ChannelProblem, Observation
@@ -186,17 +188,18 @@ def test_auto_stays_single_on_a_thin_merlot(tmp_path, capsys):
                "share" in out
 
 
-def test_auto_keeps_single_for_a_declared_render_and_a_spot(tmp_path, capsys):
+def test_auto_keeps_single_for_a_declared_render_and_checks_a_spot(tmp_path, capsys):
     """Where ``--model auto`` keeps single scattering without tracing the term
-    (inference/fit.py: auto_stays_single), and says why:
+    (inference/fit.py: auto_stays_single), and says why, and where it no longer does:
 
     * a capture that declares a single-scattering render (``synthetic.model: single``, as
       ``fitmedia synth`` writes) of Lowfat Milk 16 ml, whose share at the MAP is far above
       AUTO_SHARE: the single model is the exact one for its images, and the
       single-scattering check's note says what a photograph would hold;
-    * a spot (the term is implemented for a bulb only): before auto became the default,
-      ``--model auto`` on a spot was an input error (exit 2); now it fits single scattering
-      and says the term was not checked."""
+    * a spot: the term is traced for a spot too (since 2026-12-02, stop 25; before, auto kept
+      single scattering on a spot without checking it, and ``--model full`` was an input
+      error), so auto decides by the share there, and a single-scattering fit of a spot
+      capture reports the share at its MAP and what the check makes of it."""
     import yaml
 
     from conftest import geometry_dict
@@ -216,12 +219,14 @@ def test_auto_keeps_single_for_a_declared_render_and_a_spot(tmp_path, capsys):
 
     spot = _synth_undeclared(tmp_path / "spot", "Lowfat Milk", "16", size=(16, 12), light={
         "type": "spot", "position": [-40, 0, 0], "direction": [1, 0, 0], "cutoff_deg": 20})
-    rc, res = _fit(spot, tmp_path / "spotfit")
+    assert auto_stays_single(load_spec(spot)) is None  # auto traces the term on a spot
+    rc, res = _fit(spot, tmp_path / "spotfit", "--model", "single")
     assert rc in (0, 1) and res["model_used"] == "single"
-    for info in res["diagnostics"]["channels"].values():
-        assert "light.type spot" in info["multiple_scattering"]["auto_reason"]
-    assert main(["fit", str(spot), "--out", str(tmp_path / "spotfull"), "--model", "full",
-                 "--no-mcmc", "--quiet"]) == 2
+    said = " ".join(res["trust"]["reasons"] + res["trust"]["notes"])
+    for ch, info in res["diagnostics"]["channels"].items():
+        ms = info["multiple_scattering"]
+        assert max(ms["share"]) > AUTO_SHARE  # milk at 16 ml: far above, as for a bulb
+        assert "would be" in said and f"glow in channel {ch}" in said
 
 
 @pytest.mark.slow

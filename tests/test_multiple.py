@@ -44,6 +44,91 @@ def test_segment_lines_reproduce_the_analytic_order_one():
     np.testing.assert_allclose(ours[sel], img.ravel()[sel], rtol=3e-3)
 
 
+SPOT = {"type": "spot", "position": [40, 10, 30], "direction": [-1, 0, -0.3], "cutoff_deg": 8}
+
+
+def test_spot_segment_lines_reproduce_the_analytic_order_one():
+    """A spot: the line integrals on arbitrary rays (ms_paths._line_model, clipped to the
+    cone) against SingleScattering's own order-1 image of the same camera rays (pixel
+    centres, no footprint averaging) -- the light the tracer adds along each segment is the
+    analytic model's single scattering, cone and apex included."""
+    spec = make_spec(width=24, height=18, light={**SPOT, "position": [-40, 0, 0],
+                                                 "direction": [1, 0, 0], "cutoff_deg": 20})
+    kt, g = 0.02, 0.8
+    ss = SingleScattering(spec, None, channels=("G",), spot_supersample=(1, 1), box_filter=False)
+    img = ss.render([0.0], [kt], [g], [1.0])[..., 0]
+    tracer = MultipleScattering(spec, None, channels=("G",), bin=1, n_paths=2, batches=2).tracer
+    jj, ii = np.meshgrid(np.arange(24) + 0.5, np.arange(18) + 0.5)
+    rays = trace_to_water(spec.camera, spec.tank, spec.medium_ior, jj.ravel(), ii.ravel())
+    ours = rays.factor * tracer._segment_lines(rays.origin, rays.direction, rays.length, kt, g)
+    sel = img.ravel() > 1e-4 * img.max()
+    assert sel.sum() > 30 and not ours[~sel & (img.ravel() == 0)].any()
+    np.testing.assert_allclose(ours[sel], img.ravel()[sel], rtol=3e-3)
+
+
+def test_spot_mirror_connection_is_a_point_image(rng):
+    """A spot's light after one reflection at the front wall (PathTracer._mirror_point) against
+    the point's mirror image, independently: at the water/glass face the irradiance is 1 / L^2
+    (L the distance to the apex reflected in the plane z = hz) times Fresnel's R1; through an
+    index-matched glass (n_glass = n_water: no refraction, R1 = 0) the outer face is a plane
+    mirror t further out, 1 / L'^2 times R2.  Also 0 where the ray leaves the apex outside
+    the cone."""
+    spec = make_spec(width=16, height=12, light={**SPOT, "direction": [0.2, 0, 1],
+                                                 "cutoff_deg": 30})
+    tracer = MultipleScattering(spec, None, channels=("G",), bin=1, n_paths=2, batches=2).tracer
+    hz, c = tracer.half[2], tracer.c
+    x = np.column_stack([rng.uniform(-60, 60, 50), rng.uniform(-40, 40, 50),
+                         rng.uniform(-100, 100, 50)])
+    v = rng.normal(size=(50, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    kt, g = 0.004, 0.7
+
+    def image_point(plane):  # the direction and distance to the apex mirrored in z = plane
+        img = c.copy()
+        img[2] = 2 * plane - img[2]
+        w = img - x
+        ell = np.linalg.norm(w, axis=1)
+        return w / ell[:, None], ell
+
+    for wall, plane, which in ((ms_paths.Wall(1.33, 1.5, 0.0), hz, 0),
+                               (ms_paths.Wall(1.33, 1.33, 6.0), hz + 6.0, 1)):
+        tracer.wall = wall
+        w, ell = image_point(plane)
+        emit = w * np.array([-1.0, -1.0, 1.0])  # from the apex towards the mirror
+        inside = emit @ tracer.axis >= tracer.cos_cut
+        refl = wall.reflectances(w[:, 2])[which]
+        water = ell - 2 * wall.thickness / w[:, 2]  # the glass does not attenuate
+        expect = np.where(inside, refl * ms_paths.hg_phase(np.einsum("ij,ij->i", w, v), g)
+                          * np.exp(-kt * water) / ell**2, 0.0)
+        ours = tracer._mirror_point(x, v, kt, g, wall.thickness)
+        assert inside.any() and not inside.all()
+        np.testing.assert_allclose(ours, expect, rtol=1e-9, atol=1e-15)
+
+
+def test_spot_term_against_mitsuba(seed):
+    """A spot's multiple-scattering term (orders >= 2) against Mitsuba 3 (volpath, an
+    independent renderer; tests/data/ms_spot_reference.json by
+    docs/figures/ms_spot_reference.py): Mitsuba's all-orders render minus its orders-0-1 render
+    of the same 32 x 24 spot capture (the canonical spot's place and direction, a 20 degree
+    cone), summed over the image, within 3 combined standard errors of the tracer's, Lowfat
+    Milk 4 ml in 23 l, G (the term is 53 % of the glow).  The combined error (the reference's
+    at 2^20 samples per pixel, 2.3 %, and the tracer's at 2048 paths, ~1 %) is checked to be
+    small enough to tell a 10 % error.  The 16 ml case is in the reference file and in
+    docs/multiple_scattering.md but not tested: there both estimates are heavy-tailed (the
+    tracer's stated error 3-14 % at 2048 paths over four seeds), so a fixed-power test of it
+    would pass or fail by the seed."""
+    ref = json.loads((ROOT / "tests" / "data" / "ms_spot_reference.json").read_text())
+    light, r = ref["_settings"]["light"], ref["Lowfat Milk 4 ml"]
+    spec = make_spec(width=32, height=24, light=light)
+    kt, albedo = r["kappa_t"], r["albedo"]
+    ms = MultipleScattering(spec, None, channels=("G",), bin=1, n_paths=2048)
+    term, term_se = ms.render([kt * (1 - albedo)], [kt * albedo], [r["g"]], [1.0], seed=seed)
+    ours = float(term.sum())
+    se = math.hypot(r["multiple_se"], float(np.sqrt((term_se ** 2).sum())))
+    assert 3 * se < 0.1 * r["multiple"], (r["multiple"], se)
+    assert abs(ours - r["multiple"]) < 3 * se, (ours, r["multiple"], se)
+
+
 def test_no_scattering_no_term():
     """kappa_s = 0: the term and its error are exactly 0 (nothing is traced)."""
     _, ms = _small()
@@ -188,10 +273,6 @@ def test_bad_input_is_named():
         MultipleScattering(spec, None, n_paths=4, batches=8)
     with pytest.raises(InputError, match="g"):
         MultipleScattering(spec, None, n_paths=8, batches=4).render(0.0, 0.01, 1.0, 1.0)
-    spot = make_spec(width=16, height=12, light={"type": "spot", "position": [0, 0, 0],
-                                                 "direction": [0, 0, 1], "cutoff_deg": 30})
-    with pytest.raises(InputError, match="light.type"):
-        MultipleScattering(spot, None)
 
 
 def test_full_transport_local_model(seed):

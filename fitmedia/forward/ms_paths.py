@@ -53,6 +53,9 @@ MIX_ORDERS = 2  # vertices before this order use the mixture, later ones free fl
 # weights multiply: at milk 64 ml the batch spread was 1.99 with it at every order, 1.13 so)
 GUIDE_ORDERS = 400  # scatterings up to this order draw towards the bulb too
 GUIDE_FRACTION = 0.5  # share of scattering directions drawn towards the bulb (one-sample MIS)
+#: a spot's direction guide and its vertices' equiangular sampling aim at its apex as at a bulb
+#: of this radius (mm; the canonical bulb's): any width is unbiased, this one only steers
+SPOT_GUIDE_RADIUS = 6.0
 
 
 def frame(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -205,15 +208,20 @@ class PathTracer:
     """
 
     def __init__(self, camera: Camera, tank: Tank, water_ior: float, light: Light, single):
-        if light.type != "bulb":
-            raise NotImplementedError("the multiple-scattering estimator handles the bulb only")
         from ..util import keep_freed_memory
 
         keep_freed_memory()  # its large temporaries: ~25 % of a trace in page faults otherwise
         self.camera, self.tank, self.light = camera, tank, light
         self.half = tank.half
         self.c = np.asarray(light.position, float)
-        self.r = float(light.radius)
+        self.spot = light.type == "spot"
+        # a spot (a point source in a cone) occludes nothing; its guide is as wide as a bulb
+        # of SPOT_GUIDE_RADIUS (the beam near its apex, where the light is brightest)
+        self.r = 0.0 if self.spot else float(light.radius)
+        self.r_guide = SPOT_GUIDE_RADIUS if self.spot else self.r
+        if self.spot:
+            self.axis = np.asarray(light.direction, float)
+            self.cos_cut = float(np.cos(np.radians(light.cutoff_deg)))
         self.wall = Wall(water_ior, tank.wall_ior, tank.wall_thickness)
         self.n_pix = camera.width * camera.height
         self.water_ior = water_ior
@@ -233,11 +241,19 @@ class PathTracer:
         ell = d * cos_b - np.sqrt(np.clip(self.r**2 - d * d * sin2_b, 0.0, None))
         return w, 2.0 * np.pi * one_m_cos, ell
 
+    def _occluder(self, o, d):
+        """Distance along unit rays (o, d) to the bulb (inf if missed); a spot occludes nothing."""
+        return np.full(len(o), np.inf) if self.spot else sphere_hit(o, d, self.c, self.r)
+
     def _in_face(self, q):
         return (np.abs(q[:, 0]) < self.half[0]) & (np.abs(q[:, 1]) < self.half[1])
 
     def nee_mirror(self, x, v, kt, g, u):
         """Both one-reflection connections to the bulb through the front wall."""
+        if self.spot:
+            return self._mirror_point(x, v, kt, g, 0.0) + (
+                self._mirror_point(x, v, kt, g, self.wall.thickness)
+                if self.wall.thickness > 0 else 0.0)
         hz = self.half[2]
         img = self.c.copy()
         img[2] = 2 * hz - img[2]
@@ -252,6 +268,41 @@ class PathTracer:
         if self.wall.thickness <= 0:
             return out
         return out + self._slab(x, v, kt, g, u[:, 2], u[:, 3])
+
+    def _mirror_point(self, x, v, kt, g, thickness):
+        """A spot's light at ``x`` after one reflection at the front wall: at its water/glass
+        face (``thickness`` 0, weight R1) or, through the glass, at its outer face (weight R2).
+        Every interface is a plane parallel to the wall, so the ray from the apex to ``x`` is
+        found exactly (Newton, ``Wall.chief_angle``) and the irradiance of a point source along
+        it is I sin(theta) / (cos(theta) rho drho/dtheta), rho(theta) = depth tan(theta) +
+        2 t tan(theta_glass) the lateral offset reached at polar angle theta in the water
+        (rho = L sin(theta) and I / L^2 without the glass)."""
+        hz = self.half[2]
+        hvec = self.c[None, :2] - x[:, :2]
+        rho = np.linalg.norm(hvec, axis=1)
+        depth = (hz - x[:, 2]) + (hz - self.c[2])
+        wall = Wall(self.wall.n_water, self.wall.n_glass, thickness)
+        th = wall.chief_angle(rho, depth)
+        s, c = np.sin(th), np.cos(th)
+        m = wall.n_water / wall.n_glass
+        cg = np.sqrt(1.0 - (m * s) ** 2)
+        drho = depth / (c * c) + 2 * thickness * m * c / cg**3
+        # sin(theta) / rho, with its limit 1 / drho(0) on the wall's normal through the apex
+        s_over_rho = np.where(rho > 1e-9 * depth, s / np.maximum(rho, 1e-300), 1.0 / drho)
+        irr = s_over_rho / (c * drho)
+        hu = np.where(rho[:, None] > 0, hvec / np.maximum(rho, 1e-300)[:, None], 0.0)
+        w = np.column_stack([s[:, None] * hu, c])  # from x towards the wall
+        q1 = x + ((hz - x[:, 2]) / c)[:, None] * w
+        q_back = q1 + wall.shift(w) if thickness > 0 else q1  # where it leaves the glass again
+        emit = np.column_stack([-s[:, None] * hu, c])  # from the apex towards the wall
+        ok = (self._in_face(q1) & self._in_face(q_back) & (emit @ self.axis >= self.cos_cut)
+              & (x[:, 2] < hz) & (self.c[2] < hz))
+        r1, r2 = self.wall.reflectances(c)  # the real wall's faces (``wall``: the geometry)
+        refl = r2 if thickness > 0 else r1
+        with np.errstate(invalid="ignore", over="ignore"):
+            val = (irr * refl * hg_phase(np.einsum("ij,ij->i", w, v), g)
+                   * np.exp(-kt * depth / c))
+        return np.where(ok, val, 0.0)
 
     def _slab(self, x, v, kt, g, u1, u2):
         hz = self.half[2]
@@ -289,6 +340,9 @@ class PathTracer:
         if not live.any():
             return out
         seg = _line_model(self._single, o[live], v[live], length[live])
+        if self.spot:  # a unit-intensity point source: SingleScattering.render's spot factor
+            out[live] = kt / seg._h * seg._line_integrals(np.array([kt]), np.array([g]))[:, 0]
+            return out
         a = kt * self.r
         if a > A_OPAQUE:
             return out
@@ -302,7 +356,7 @@ class PathTracer:
         bulb, and for rays that reach the front wall and are reflected (Fresnel choice by
         ``u_r``): their index, restart point, reflected direction and free length."""
         d_box, front = box_exit(x, v, self.half)
-        d_b = sphere_hit(x, v, self.c, self.r)
+        d_b = self._occluder(x, v)
         i = np.flatnonzero(front & (d_b > d_box))
         xi, vi = x[i] + d_box[i, None] * v[i], v[i].copy()
         r1, r2 = self.wall.reflectances(vi[:, 2])
@@ -312,14 +366,14 @@ class PathTracer:
         vi[:, 2] = -vi[:, 2]
         ok = (one | two) & self._in_face(xi)
         i, xi, vi = i[ok], xi[ok], vi[ok]
-        d2 = np.minimum(box_exit(xi, vi, self.half)[0], sphere_hit(xi, vi, self.c, self.r))
+        d2 = np.minimum(box_exit(xi, vi, self.half)[0], self._occluder(xi, vi))
         return np.minimum(d_box, d_b), (i, xi, vi, d2)
 
     def _scatter(self, x, v, g, u, u_pick, guide=GUIDE_FRACTION):
         """New directions, from the phase function or towards the bulb (one-sample mixture),
         and their weights p_HG / p_mixture."""
         w_hg = sample_hg(v, g, u[:, 0], u[:, 1])
-        w_gd, axis, alpha, span = guide_to(x, self.c, self.r, u[:, 0], u[:, 1])
+        w_gd, axis, alpha, span = guide_to(x, self.c, self.r_guide, u[:, 0], u[:, 1])
         w = np.where((u_pick < guide)[:, None], w_gd, w_hg)
         p_hg = hg_phase(np.einsum("ij,ij->i", w, v), g)
         if guide <= 0:
@@ -406,7 +460,7 @@ class PathTracer:
         rays = trace_to_water(cam, self.tank, self.water_ior, pix % cam.width + u0[:, 0],
                               pix // cam.width + u0[:, 1])
         entered = np.bincount(pix, weights=(rays.factor > 0).astype(float), minlength=self.n_pix)
-        length = np.minimum(rays.length, sphere_hit(rays.origin, rays.direction, self.c, self.r))
+        length = np.minimum(rays.length, self._occluder(rays.origin, rays.direction))
         ids = np.flatnonzero((rays.factor > 0) & (length > 0))
         none = (np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
         v = rays.direction[ids]
@@ -450,8 +504,8 @@ class PathTracer:
 
 def _line_model(tpl, o, v, length):
     """A SingleScattering whose rays are (o, v, length) instead of the camera's, for its line
-    integrals (the per-ray set-up of ``SingleScattering._build``, bulb only)."""
-    from .single import SingleScattering
+    integrals (the per-ray set-up of ``SingleScattering._build``)."""
+    from .single import SingleScattering, _cone_interval
 
     seg = object.__new__(SingleScattering)
     seg.__dict__.update({k: tpl.__dict__[k] for k in ("light", "nodes", "nodes_upper", "_rules")})
@@ -459,6 +513,14 @@ def _line_model(tpl, o, v, length):
     seg._work = threading.local()
     c, r = tpl.light.position, tpl.light.radius
     s0, h = SingleScattering._closest(WaterRays(o, v, length, length), c)
+    if tpl.light.type == "spot":  # the rays clipped to the cone; no cap table
+        s_in, s_out = _cone_interval(o - c, v, tpl.light.direction, tpl.light.cutoff_deg)
+        lo, hi = np.maximum(s_in, 0.0), np.minimum(length, s_out)
+        seg._s0, seg._h = s0, np.maximum(h, 1e-9 * max(tpl.spec.tank.inner_size))
+        empty = hi <= lo
+        seg._phi_a = np.where(empty, 0.0, np.arctan2(lo - s0, seg._h))
+        seg._phi_b = np.where(empty, 0.0, np.arctan2(hi - s0, seg._h))
+        return seg
     s_hit = s0 - np.sqrt(np.clip(r * r - h * h, 0.0, None))
     hit = (h < r) & (s_hit > 0) & (s_hit < length)
     hi = np.where(hit, s_hit, length)

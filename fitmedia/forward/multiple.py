@@ -90,8 +90,6 @@ class MultipleScattering:
         use = image_index is not None and spec.images
         self.camera = spec.camera_for(image_index) if use else spec.camera
         self.light = spec.light_for(image_index) if use else spec.light
-        if self.light.type != "bulb":
-            raise InputError("light.type: the multiple-scattering term is implemented for the bulb only")
         if int(bin) < 1 or int(n_paths) < int(batches) or int(batches) < 2:
             raise InputError(f"bin {bin}, n_paths {n_paths}, batches {batches}: need bin >= 1, "
                              f"batches >= 2 and n_paths >= batches")

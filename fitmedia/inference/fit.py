@@ -76,9 +76,6 @@ def _model(spec: Spec, image_index: int | None, channel: str, options: FitOption
         raise InputError(f"--model: {options.model!r} is not one of {', '.join(MODELS)}")
     if forward is not None:
         return forward(spec, image_index, channels=(channel,))
-    if options.model == "full" and spec.light.type != "bulb":
-        raise InputError(f"--model {options.model}: the multiple-scattering term is implemented "
-                         "for light.type bulb only; use --model single for a spot")
     from ..forward.single import SingleScattering
 
     return SingleScattering(spec, image_index, channels=(channel,))
@@ -274,9 +271,9 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
         res, transport = _full_transport(problem, space, res, spec, channel, options, seed, alt)
         if transport["model_used"] == "full":
             alt = None  # the other g mode was judged with single scattering only
-    elif forward is None and spec.light.type == "bulb":
+    elif forward is None:
         transport = _single_ms_check(problem, res, spec, channel, seed)
-    if stays is not None:  # auto kept single scattering (a spot: no term traced)
+    if stays is not None:  # auto kept single scattering (a declared single render)
         transport = {"model_used": "single", **transport, "auto_reason": stays}
     other_mode = None if alt is None else {
         "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
@@ -500,15 +497,10 @@ def auto_stays_single(spec: Spec) -> str | None:
     the multiple-scattering term, else None (auto then decides by the term's share at the
     single-scattering MAP, ``_full_transport``):
 
-    * the light is not a bulb: the term is implemented for bulbs only (a spot's fit stays
-      single scattering, as before ``auto`` was the default, and says so);
     * the capture declares a single-scattering render (``synthetic.model: single``, which
       ``fitmedia synth --model single`` writes): its images hold no multiple scattering, so
       the single model is the exact one and the full model would add light that is not
       there.  The single-scattering check still runs and notes the share."""
-    if spec.light.type != "bulb":
-        return (f"light.type {spec.light.type}: the multiple-scattering term is implemented for "
-                "a bulb only, so single scattering was used and not checked for it")
     if spec.synthetic_model == "single":
         return ("the capture declares a single-scattering render (synthetic.model: single), "
                 "whose images hold no multiple scattering")
