@@ -7,7 +7,9 @@ sampling towards the bulb, later ones by free flight), directions come from a
 mixture of Henyey–Greenstein and a guide towards the bulb, the five black walls
 and the bulb end a segment, the front wall reflects it (Fresnel; total internal
 reflection at the glass/air face beyond ~49 degrees in the water), and paths end
-by Russian roulette.  The bulb's light is connected explicitly:
+by Russian roulette.  The bulb's light is connected explicitly (a spot's likewise: its
+analytic single scattering along the segments, clipped to its cone, and exact point-source
+connections through the front wall, ``PathTracer._mirror_point``):
 
 * along every segment after the first vertex: the single scattering towards the
   segment's start, by the analytic model's line integral (exact cap average);
@@ -201,10 +203,10 @@ def uniforms(seed: int, order: int, ids: np.ndarray, n_dims: int) -> np.ndarray:
 
 
 class PathTracer:
-    """The estimator for one camera (the low-resolution one), tank and bulb.
+    """The estimator for one camera (the low-resolution one), tank and light (bulb or spot).
 
     ``trace`` returns per batch, order and pixel the sum of path contributions for a
-    unit-radiance bulb and albedo 1 (multiply order k by albedo^k).
+    unit-radiance bulb (a unit-intensity spot) and albedo 1 (multiply order k by albedo^k).
     """
 
     def __init__(self, camera: Camera, tank: Tank, water_ior: float, light: Light, single):

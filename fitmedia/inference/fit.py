@@ -272,7 +272,7 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
         if transport["model_used"] == "full":
             alt = None  # the other g mode was judged with single scattering only
     elif forward is None:
-        transport = _single_ms_check(problem, res, spec, channel, seed)
+        transport = _single_ms_check(problem, space, res, spec, channel, seed)
     if stays is not None:  # auto kept single scattering (a declared single render)
         transport = {"model_used": "single", **transport, "auto_reason": stays}
     other_mode = None if alt is None else {
@@ -438,23 +438,39 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     single-scattering optimum with g of the other sign, if one was found; it is refined with
     the full model too and the better of the two kept (``full_other_g_mode`` the other).
     Returns the MAP and the fields of ``fit_channel``'s result that say what was used."""
-    from .full import (AUTO_SHARE, distance_sd, more_paths, ms_images, ms_share, refine_map,
-                       restart_shift, seed_shift, term_jackknife, use_full_transport)
+    from .full import (AUTO_SHARE, distance_sd, more_paths, ms_images, ms_share,
+                       refine_map, restart_shift, seed_shift, term_jackknife,
+                       use_full_transport, use_single_scattering)
 
     ms_seed, check_seed = _ms_seeds(seed, channel)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
     above = max(share) > AUTO_SHARE
     out = {"model_used": "single", "ms_share_single_map": share}
+    scan = _spot_scan(problem, space, res, spec, channel, ms_seed)
+    if scan is not None:
+        out["ms_scan"] = scan["rows"]
     if options.model == "auto":
         out["auto_reason"] = (f"the multiple-scattering share at the single-scattering MAP, "
                               f"{_pct(max(share))} of the glow, is "
                               f"{'above' if above else 'at or below'} {_pct(AUTO_SHARE)} (AUTO_SHARE)")
+        if not above and scan is not None and scan["verdict"] is not None:
+            above = True
+            out["auto_reason"] += (f"; but full transport at kappa_t {scan['best_kappa_t']:.4g}, "
+                                   f"g {scan['best_g']:.3g} fits the images {scan['verdict']} "
+                                   f"({scan['gain']:+.3g} log-posterior units; a spot: its "
+                                   "single-scattering fit can take multiple scattering for a "
+                                   "thinner medium)")
         if not above:
+            if scan is not None:
+                use_single_scattering(problem, res.x)
             out.update(ms_share=share, ms_share_se=share_se)
             return res, out
-    use_full_transport(problem, spec, channel, seed=ms_seed)
+    if scan is None:
+        use_full_transport(problem, spec, channel, seed=ms_seed)
     single_x = res.x
-    res, info = refine_map(problem, space, res)
+    start = res if scan is None or scan["best"].log_posterior <= res.log_posterior \
+        else scan["best"]
+    res, info = refine_map(problem, space, start)
     other_g = None
     if alt is not None:  # the other sign of g, refined with the full model as well
         alt_full, alt_info = refine_map(problem, space, alt)
@@ -492,6 +508,26 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     return res, out
 
 
+def _spot_scan(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec, channel: str,
+               ms_seed: int) -> dict | None:
+    """For a spot capture that does not declare a single-scattering render: the full model
+    scanned from the single-scattering MAP ``res`` (inference/full.py: ``scan_start``; the
+    problem is left with the full-transport model).  ``gain``: the best point's log posterior
+    minus the single MAP's.  None for a bulb (its direct view pins kappa_t) or a declared
+    single render."""
+    from .full import scan_start, scan_verdict, use_full_transport
+
+    if spec.light.type != "spot" or spec.synthetic_model == "single":
+        return None
+    use_full_transport(problem, spec, channel, seed=ms_seed)
+    best, rows = scan_start(problem, space, res)
+    gain = float(best.log_posterior - res.log_posterior)
+    kt = float(np.exp(best.x[0]))
+    return {"best": best, "rows": rows, "gain": gain, "best_kappa_t": kt,
+            "best_g": float(np.tanh(best.x[2])),
+            "verdict": scan_verdict(gain, kt, float(np.exp(res.x[0])))}
+
+
 def auto_stays_single(spec: Spec) -> str | None:
     """Why ``--model auto`` keeps the single-scattering model for ``spec`` without tracing
     the multiple-scattering term, else None (auto then decides by the term's share at the
@@ -519,18 +555,26 @@ def _ms_seeds(seed: int, channel: str) -> tuple[int, int]:
     return int(a), int(b)
 
 
-def _single_ms_check(problem: ChannelProblem, res, spec: Spec, channel: str, seed: int
-                     ) -> dict:
+def _single_ms_check(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec,
+                     channel: str, seed: int) -> dict:
     """``--model single``: the multiple-scattering share at the MAP ``res`` and how far chi2/
     pixel would rise were that term in the images (inference/full.py: ``ms_detectability``;
-    trust.py judges it).  The same random numbers as ``--model auto``'s share."""
-    from .full import ms_detectability
+    trust.py judges it).  The same random numbers as ``--model auto``'s share.  On a spot
+    capture also the full model's scan from the MAP (:func:`_spot_scan`; ``ms_scan_gain``)."""
+    from .full import ms_detectability, use_single_scattering
 
     det = ms_detectability(problem, res.x, spec, channel, seed=_ms_seeds(seed, channel)[0])
-    return {"model_used": "single", "ms_share_single_map": det["share"],
-            "ms_share": det["share"], "ms_share_se": det["share_se"],
-            "ms_chi2_excess": det["chi2_excess_per_pixel"],
-            "ms_declared_single_render": spec.synthetic_model == "single"}
+    out = {"model_used": "single", "ms_share_single_map": det["share"],
+           "ms_share": det["share"], "ms_share_se": det["share_se"],
+           "ms_chi2_excess": det["chi2_excess_per_pixel"],
+           "ms_declared_single_render": spec.synthetic_model == "single"}
+    scan = _spot_scan(problem, space, res, spec, channel, _ms_seeds(seed, channel)[0])
+    if scan is not None:
+        use_single_scattering(problem, res.x)
+        out.update(ms_scan=scan["rows"], ms_scan_gain=scan["gain"],
+                   ms_scan_verdict=scan["verdict"],
+                   ms_scan_best={"kappa_t": scan["best_kappa_t"], "g": scan["best_g"]})
+    return out
 
 
 def _log_posterior_refreshed(problem: ChannelProblem, x: np.ndarray) -> float:
