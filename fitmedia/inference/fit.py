@@ -512,8 +512,9 @@ def _spot_scan(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec, 
                ms_seed: int) -> dict | None:
     """For a spot capture that does not declare a single-scattering render: the full model
     scanned from the single-scattering MAP ``res`` (inference/full.py: ``scan_start``; the
-    problem is left with the full-transport model).  ``gain``: the best point's log posterior
-    minus the single MAP's.  None for a bulb (its direct view pins kappa_t) or a declared
+    problem is left with the full-transport model).  ``verdict`` (``full.scan_verdict``) and
+    the point it names (``best_kappa_t``, ``best_g``; ``gain``: its log posterior minus the
+    single MAP's); ``best``: the best point's MapResult.  None for a bulb (its direct view pins kappa_t) or a declared
     single render."""
     from .full import scan_start, scan_verdict, use_full_transport
 
@@ -521,11 +522,10 @@ def _spot_scan(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec, 
         return None
     use_full_transport(problem, spec, channel, seed=ms_seed)
     best, rows = scan_start(problem, space, res)
-    gain = float(best.log_posterior - res.log_posterior)
-    kt = float(np.exp(best.x[0]))
-    return {"best": best, "rows": rows, "gain": gain, "best_kappa_t": kt,
-            "best_g": float(np.tanh(best.x[2])),
-            "verdict": scan_verdict(gain, kt, float(np.exp(res.x[0])))}
+    verdict, named = scan_verdict(rows, res.log_posterior, float(np.exp(res.x[0])))
+    return {"best": best, "rows": rows, "verdict": verdict,
+            "gain": float(named["log_posterior"] - res.log_posterior),
+            "best_kappa_t": named["kappa_t"], "best_g": named["g"]}
 
 
 def auto_stays_single(spec: Spec) -> str | None:
