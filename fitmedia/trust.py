@@ -202,14 +202,25 @@ MS_DETECT_FACTOR = 3.0
 MS_BIAS_PER_SHARE = 0.8
 
 
+def _spot_scan_reason(ch: str, ms: dict) -> str:
+    """The reason a spot's single-scattering values of channel ``ch`` are not determined, from
+    the full model's scan (results.json's ``multiple_scattering.spot_scan_*``)."""
+    best, gain = ms.get("spot_scan_best") or {}, ms.get("spot_scan_gain")
+    how = (f"better than the single-scattering values, by {gain:.3g} log-posterior units"
+           if ms.get("spot_scan_verdict") == "better" else
+           f"about as well as the single-scattering values ({gain:+.3g} log-posterior units)")
+    return (f"full transport at kappa_t {best.get('kappa_t', float('nan')):.4g}, g "
+            f"{best.get('g', float('nan')):.3g} describes the images of channel {ch} {how}: the "
+            "single-scattering fit of a spot can take multiple scattering for a thinner medium, "
+            f"and its values of channel {ch} are not determined; fit with --model auto or full")
+
+
 def single_scattering_checks(chans: dict[str, dict], checks: dict[str, dict]
                              ) -> tuple[list[str], list[str]]:
     """Reasons and notes on what the single-scattering model leaves out, per channel fitted
     with it (results.json's ``diagnostics.channels.<ch>.multiple_scattering`` with
     ``chi2_excess_if_present`` and ``kappa_s_log_sd``; ``checks``: :func:`misfit_checks`'
-    verdicts).  First, on a spot capture (``spot_scan_verdict``, inference/full.py:
-    ``scan_verdict``): where the full model fits better or as well far from the MAP, a reason.
-    Then, where the term's share of the glow at the MAP is above ``AUTO_SHARE``:
+    verdicts).  A spot's scan verdict is a reason.  Then, where the share is above AUTO_SHARE:
 
     * the misfit guard fired: a note naming multiple scattering as a likely cause;
     * the capture declares a single-scattering render (``synthetic.model: single``, as
@@ -226,19 +237,8 @@ def single_scattering_checks(chans: dict[str, dict], checks: dict[str, dict]
     reasons, notes = [], []
     for ch, info in chans.items():
         ms = info.get("multiple_scattering") or {}
-        verdict = ms.get("spot_scan_verdict")
-        if info.get("model_used") == "single" and verdict is not None:
-            best, gain = ms.get("spot_scan_best") or {}, ms.get("spot_scan_gain")
-            how = (f"better than the single-scattering values, by {gain:.3g} log-posterior units"
-                   if verdict == "better" else
-                   f"about as well as the single-scattering values ({gain:+.3g} log-posterior "
-                   "units)")
-            reasons.append(
-                f"full transport at kappa_t {best.get('kappa_t', float('nan')):.4g}, g "
-                f"{best.get('g', float('nan')):.3g} describes the images of channel {ch} {how}: "
-                "the single-scattering fit of a spot can take multiple scattering for a thinner "
-                f"medium, and its values of channel {ch} are not determined; fit with --model "
-                "auto or full")
+        if info.get("model_used") == "single" and ms.get("spot_scan_verdict") is not None:
+            reasons.append(_spot_scan_reason(ch, ms))  # a spot's scan: not determined
             continue
         excess, share = ms.get("chi2_excess_if_present"), ms.get("share") or []
         if info.get("model_used") != "single" or excess is None or not share \

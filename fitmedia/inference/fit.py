@@ -433,43 +433,27 @@ def _sample_channel(problem: ChannelProblem, space: ParameterSpace, res: MapResu
 def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec,
                     channel: str, options: FitOptions, seed: int, alt=None) -> tuple:
     """``--model full`` / ``auto`` from the single-scattering MAP ``res``: the multiple-
-    scattering share there, and (full, or auto above ``AUTO_SHARE``) the full-transport MAP
-    and how far another realisation of the term moves it (inference/full.py).  ``alt``: the
-    single-scattering optimum with g of the other sign, if one was found; it is refined with
-    the full model too and the better of the two kept (``full_other_g_mode`` the other).
-    Returns the MAP and the fields of ``fit_channel``'s result that say what was used."""
-    from .full import (AUTO_SHARE, distance_sd, more_paths, ms_images, ms_share,
-                       refine_map, restart_shift, seed_shift, term_jackknife,
-                       use_full_transport, use_single_scattering)
+    scattering share there, and (full, or auto: :func:`_auto_choice`) the full-transport MAP
+    and the checks on it (inference/full.py).  ``alt``: the single-scattering optimum with g of
+    the other sign, if one was found; refined with the full model too, the better one kept
+    (``full_other_g_mode`` the other).  Returns the MAP and ``fit_channel``'s fields."""
+    from .full import (distance_sd, more_paths, ms_images, ms_share, refine_map, restart_shift,
+                       seed_shift, term_jackknife, use_full_transport, use_single_scattering)
 
     ms_seed, check_seed = _ms_seeds(seed, channel)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
-    above = max(share) > AUTO_SHARE
-    out = {"model_used": "single", "ms_share_single_map": share}
-    scan = _spot_scan(problem, space, res, spec, channel, ms_seed)
-    if scan is not None:
-        out["ms_scan"] = scan["rows"]
+    scan = _spot_scan(problem, space, res, spec, channel, ms_seed)  # None for a bulb
+    out = {"model_used": "single", "ms_share_single_map": share,
+           **({"ms_scan": scan["rows"]} if scan else {})}
     if options.model == "auto":
-        out["auto_reason"] = (f"the multiple-scattering share at the single-scattering MAP, "
-                              f"{_pct(max(share))} of the glow, is "
-                              f"{'above' if above else 'at or below'} {_pct(AUTO_SHARE)} (AUTO_SHARE)")
-        if not above and scan is not None and scan["verdict"] is not None:
-            above = True
-            out["auto_reason"] += (f"; but full transport at kappa_t {scan['best_kappa_t']:.4g}, "
-                                   f"g {scan['best_g']:.3g} fits the images {scan['verdict']} "
-                                   f"({scan['gain']:+.3g} log-posterior units; a spot: its "
-                                   "single-scattering fit can take multiple scattering for a "
-                                   "thinner medium)")
+        above, out["auto_reason"] = _auto_choice(share, scan)
         if not above:
-            if scan is not None:
-                use_single_scattering(problem, res.x)
+            use_single_scattering(problem, res.x)  # undoes the scan's full model
             out.update(ms_share=share, ms_share_se=share_se)
             return res, out
-    if scan is None:
-        use_full_transport(problem, spec, channel, seed=ms_seed)
+    use_full_transport(problem, spec, channel, seed=ms_seed)
     single_x = res.x
-    start = res if scan is None or scan["best"].log_posterior <= res.log_posterior \
-        else scan["best"]
+    start = scan["best"] if scan and scan["best"].log_posterior > res.log_posterior else res
     res, info = refine_map(problem, space, start)
     other_g = None
     if alt is not None:  # the other sign of g, refined with the full model as well
@@ -506,6 +490,22 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                               "g": float(np.tanh(res.x[2]) - np.tanh(loop_x[2]))},
                ms_images=ms_images(problem, res.x), full_other_g_mode=other_g)
     return res, out
+
+
+def _auto_choice(share: list[float], scan: dict | None) -> tuple[bool, str]:
+    """``--model auto``'s choice from the share at the single-scattering MAP and, on a spot,
+    the full model's scan (:func:`_spot_scan`): (full transport?, why in plain words)."""
+    from .full import AUTO_SHARE
+
+    above = max(share) > AUTO_SHARE
+    why = (f"the multiple-scattering share at the single-scattering MAP, {_pct(max(share))} of "
+           f"the glow, is {'above' if above else 'at or below'} {_pct(AUTO_SHARE)} (AUTO_SHARE)")
+    if not above and scan is not None and scan["verdict"] is not None:
+        return True, why + (f"; but full transport at kappa_t {scan['best_kappa_t']:.4g}, g "
+                            f"{scan['best_g']:.3g} fits the images {scan['verdict']} "
+                            f"({scan['gain']:+.3g} log-posterior units; a spot: its single-"
+                            "scattering fit can take multiple scattering for a thinner medium)")
+    return above, why
 
 
 def _spot_scan(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec, channel: str,

@@ -82,11 +82,13 @@ class FullFitInfo:
 
 def use_full_transport(problem: ChannelProblem, spec, channel: str, *, seed: int) -> None:
     """Give every observation of ``problem`` the full-transport model of its image, built
-    around its existing analytic model (no local model yet: call ``refine_map``)."""
+    around its analytic model (no local model yet: call ``refine_map``); one it has already is
+    built anew."""
     from ..forward.multiple import FullTransport
 
     for i, o in enumerate(problem.obs):
-        o.model = FullTransport(spec, i, channels=(channel,), seed=seed, single=o.model,
+        o.model = FullTransport(spec, i, channels=(channel,), seed=seed,
+                                single=getattr(o.model, "single", o.model),
                                 bin=trace_bin(spec.camera_for(i)))
 
 
