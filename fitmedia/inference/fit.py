@@ -514,8 +514,8 @@ def _spot_scan(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec, 
     scanned from the single-scattering MAP ``res`` (inference/full.py: ``scan_start``; the
     problem is left with the full-transport model).  ``verdict`` (``full.scan_verdict``) and
     the point it names (``best_kappa_t``, ``best_g``; ``gain``: its log posterior minus the
-    single MAP's); ``best``: the best point's MapResult.  None for a bulb (its direct view pins kappa_t) or a declared
-    single render."""
+    single MAP's); ``best``: the best point's MapResult.  None for a bulb (its direct view
+    pins kappa_t) or a declared single render."""
     from .full import scan_start, scan_verdict, use_full_transport
 
     if spec.light.type != "spot" or spec.synthetic_model == "single":

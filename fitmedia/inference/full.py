@@ -94,7 +94,7 @@ def use_full_transport(problem: ChannelProblem, spec, channel: str, *, seed: int
 
 #: a spot has no direct view of its light, so nothing pins kappa_t but the glow, and its
 #: single-scattering MAP can take multiple-scattering light for a thinner medium with a
-#: backward g (measured on the canonical 200 x 150 spot, Lowfat Milk 4 ml: kappa_t 71-88 %
+#: smaller g (measured on the canonical 200 x 150 spot, Lowfat Milk 4 ml: kappa_t 71-88 %
 #: low, g 0.55-0.73 low, chi2/pixel 1.02 in R, where the term's share at that MAP was 0.7 %
 #: and auto stayed single).  :func:`scan_start` tries the full model at these multiples of
 #: that MAP's kappa_t ...
