@@ -7,7 +7,9 @@ canonical capture at 64 x 48, 200 x 150 and 400 x 300 pixels, two images plus th
 water (docs/testing.md, "Bad-input corpus", gives the runs):
 
 * synth: 156, 321 and 863 MB -> 137 MB + 6.1 kB per pixel (one image rendered at a time,
-  supersampled 2 x 2); the 400 x 300 run was predicted to 1 %.
+  supersampled 2 x 2); the 400 x 300 run was predicted to 1 %.  ``synth --model full``
+  (Mitsuba, 256 spp) at 200 x 150: 284004 kB (canonical bulb) and 287912 kB (canonical spot),
+  below the estimate's 312 MiB (2026-12-02, stop 25).
 * fit: 262 MB for the whole 64 x 48 MAP fit; the images and one channel's forward models
   (prepare, then a channel's problem evaluated) grow by 0.24 kB per pixel and file loaded
   and 1.4 kB per pixel, image and channel fitted at once (parallel worker processes each

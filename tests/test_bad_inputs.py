@@ -129,7 +129,9 @@ def test_memory_estimate_against_measured_peaks(width, height, synth_mb):
     tracer (every bulb fit since 2026-12-02: the single-scattering check), it is at least the
     1262616 kB measured for ``fit --model single --no-mcmc --workers 1`` of a bulb capture at
     64 x 48, and ``synth --model hybrid``'s at least the 1147296 kB measured there
-    (fitmedia/memory.py); without the tracer's term both were 4-7 times below."""
+    (fitmedia/memory.py); without the tracer's term both were 4-7 times below.  At 200 x 150
+    the synth estimate also holds for ``synth --model full`` (Mitsuba, 256 spp): 284004 kB
+    measured for the canonical bulb, 287912 kB for the canonical spot (stop 25)."""
     from fitmedia.memory import estimate_peak
     from fitmedia.spec import parse_spec
     from conftest import geometry_dict
@@ -146,6 +148,9 @@ def test_memory_estimate_against_measured_peaks(width, height, synth_mb):
     if (width, height) == (64, 48):  # the sizes the tracer's peaks were measured at
         assert one >= 1262616 * 1024  # /usr/bin/time -v's maximum resident set, kB
         assert estimate_peak(spec, "synth", tracer=True) >= 1147296 * 1024
+    if (width, height) == (200, 150):  # synth --model full's peaks, Mitsuba at 256 spp
+        assert estimate_peak(parse_spec(geometry_dict(width=width, height=height),
+                                        require_images=False), "synth") >= 287912 * 1024
 
 
 def test_a_spec_beyond_the_memory_limit_is_refused_up_front(monkeypatch):
