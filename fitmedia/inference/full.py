@@ -145,9 +145,7 @@ def scan_start(problem: ChannelProblem, space: ParameterSpace, single: MapResult
                 x[2] = np.clip(np.arctanh(g), space.lower[2], space.upper[2])
             problem.refresh_models(x)
             problem.adapt(x)
-            lo, hi = space.lower.copy(), space.upper.copy()
-            for j in (0, 2):
-                lo[j], hi[j] = max(lo[j], x[j] - TRUST_STEP), min(hi[j], x[j] + TRUST_STEP)
+            lo, hi = _trust_region(space, x)
             new = find_map(problem.log_posterior, np.clip(x, lo, hi), lo, hi, global_evals=0,
                            laplace=False)
             rows.append({"kappa_t": float(np.exp(new.x[0])), "g": float(np.tanh(new.x[2])),
@@ -166,6 +164,15 @@ def use_single_scattering(problem: ChannelProblem, x: np.ndarray) -> None:
     problem.adapt(x)
 
 
+def _trust_region(space: ParameterSpace, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The bounds within which a local model built at ``x`` is used: ``TRUST_STEP`` either way
+    in log kappa_t and atanh g (the local model's coordinates), the space's bounds else."""
+    lo, hi = space.lower.copy(), space.upper.copy()
+    for j in (0, 2):
+        lo[j], hi[j] = max(lo[j], x[j] - TRUST_STEP), min(hi[j], x[j] + TRUST_STEP)
+    return lo, hi
+
+
 def trace_bin(cam) -> int:
     """Camera pixels per traced sample pixel (each way): a grid of about ``TRACE_WIDTH`` x
     ``TRACE_HEIGHT`` sample pixels."""
@@ -182,9 +189,7 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
     for _ in range(max_refresh):
         problem.refresh_models(res.x)
         problem.adapt(res.x)
-        lo, hi = space.lower.copy(), space.upper.copy()
-        for j in (0, 2):  # log kappa_t, atanh g: the local model's coordinates
-            lo[j], hi[j] = max(lo[j], res.x[j] - TRUST_STEP), min(hi[j], res.x[j] + TRUST_STEP)
+        lo, hi = _trust_region(space, res.x)
         new = find_map(problem.log_posterior, np.clip(res.x, lo, hi), lo, hi, global_evals=0)
         move = distance_sd(problem, new, res.x, None)
         jitter = _in_term_units(res.x, new.x, _cov_or_ridge(problem, new),
