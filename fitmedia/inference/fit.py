@@ -518,7 +518,8 @@ def _spot_scan(problem: ChannelProblem, space: ParameterSpace, res, spec: Spec, 
     pins kappa_t) or a declared single render."""
     from .full import scan_start, scan_verdict, use_full_transport
 
-    if spec.light.type != "spot" or spec.synthetic_model == "single":
+    lights = {spec.light_for(i).type for i in range(len(spec.images))} or {spec.light.type}
+    if "spot" not in lights or spec.synthetic_model == "single":  # any image lit by a spot
         return None
     use_full_transport(problem, spec, channel, seed=ms_seed)
     best, rows = scan_start(problem, space, res)
