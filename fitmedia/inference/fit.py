@@ -564,12 +564,13 @@ def _single_ms_check(problem: ChannelProblem, space: ParameterSpace, res, spec: 
     capture also the full model's scan from the MAP (:func:`_spot_scan`; ``ms_scan_gain``)."""
     from .full import ms_detectability, use_single_scattering
 
-    det = ms_detectability(problem, res.x, spec, channel, seed=_ms_seeds(seed, channel)[0])
+    ms_seed = _ms_seeds(seed, channel)[0]
+    det = ms_detectability(problem, res.x, spec, channel, seed=ms_seed)
     out = {"model_used": "single", "ms_share_single_map": det["share"],
            "ms_share": det["share"], "ms_share_se": det["share_se"],
            "ms_chi2_excess": det["chi2_excess_per_pixel"],
            "ms_declared_single_render": spec.synthetic_model == "single"}
-    scan = _spot_scan(problem, space, res, spec, channel, _ms_seeds(seed, channel)[0])
+    scan = _spot_scan(problem, space, res, spec, channel, ms_seed)
     if scan is not None:
         use_single_scattering(problem, res.x)
         out.update(ms_scan=scan["rows"], ms_scan_gain=scan["gain"],
