@@ -110,9 +110,6 @@ def cmd_fit(a) -> int:
     for line in model_lines(res):
         print(line)
     print_values(res)
-    if "converged" in res["diagnostics"] and not res["diagnostics"]["converged"]:
-        print("warning: the sampler did not converge; see diagnostics in results.json",
-              file=sys.stderr)
     return print_verdict(res)
 
 
@@ -347,8 +344,10 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--model", choices=["single", "full", "auto"], default=DEFAULTS.model,
                    help="single: analytic single scattering; full: plus the multiple-scattering "
                         "term, refreshed around the MAP; auto: full when the term's share of the "
-                        "glow at the single-scattering MAP is above 2 %% (default; single for "
-                        "a spot or a capture that declares a single-scattering render)")
+                        "glow at the single-scattering MAP is above 2 %%, or, for a spot, when "
+                        "a scan of the full model finds the single fit's values undetermined "
+                        "(default; single for a capture that declares a single-scattering "
+                        "render)")
     f.add_argument("--seed", type=_seed, default=DEFAULTS.seed)
     f.add_argument("--no-mcmc", action="store_true", help="MAP only, no posterior sampling")
     f.add_argument("--no-report", action="store_true")
