@@ -186,6 +186,25 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
     return reasons
 
 
+def sampler_reasons(chans: dict[str, dict]) -> list[str]:
+    """Plain-words reasons for channels whose posterior sampler did not converge (results.json's
+    ``diagnostics.channels.<ch>.converged`` false, with its ``reason``): the intervals of such a
+    chain are not a posterior's.  Measured: chains stopped short of 50 autocorrelation times
+    put 0.4-3 % of the mass on the albedo's plateau where the posterior has 3.9 %
+    (docs/inference.md, "The albedo move").  Until 2026-12-03 ``fitmedia fit`` only warned
+    and exited 0."""
+    reasons = []
+    for ch, info in chans.items():
+        if info.get("converged") is False:
+            why = info.get("reason")
+            reasons.append(
+                f"the posterior sampler of channel {ch} did not converge"
+                + (f" ({why})" if why else "")
+                + f": the intervals of channel {ch} are not reliable; continue the chain with "
+                "`fitmedia fit ... --resume --max-steps N` (N above the steps it ran)")
+    return reasons
+
+
 #: a single-scattering fit whose multiple-scattering share at its MAP is above the share at
 #: which ``--model auto`` switches to full transport (inference/full.py: AUTO_SHARE) is asked
 #: whether the misfit guard could see that term (inference/full.py: ms_detectability): it

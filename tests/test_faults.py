@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import geometry_dict
+from conftest import assert_only_the_sampler_doubted, geometry_dict
 
 
 def _run(argv, capsys):
@@ -186,7 +186,7 @@ def two_channel_capture(tmp_path_factory):
     spec.write_text(spec.read_text() + "channels: [R, G]\n")
     res = subprocess.run(_fit_cmd(spec, d / "whole"), capture_output=True, text=True,
                          timeout=900)
-    assert res.returncode == 0, res.stderr
+    assert_only_the_sampler_doubted(res)
     return spec, d / "whole"
 
 
@@ -286,7 +286,7 @@ def test_kill_9_of_a_2_worker_fit_then_resume(two_channel_capture, tmp_path, see
     _kill_main_process(spec, out, point, rng)
     res = subprocess.run(_fit_cmd(spec, out, "--resume"), capture_output=True, text=True,
                          timeout=900)
-    assert res.returncode == 0, res.stderr
+    assert_only_the_sampler_doubted(res)
     _same_results(out, whole)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["killed"]
 

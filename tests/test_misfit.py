@@ -72,6 +72,26 @@ def test_series_with_one_bad_image():
     assert verdict["ok"] is False and "with --robust, outliers" in verdict["reasons"][0]
 
 
+def test_unconverged_sampler_is_a_reason():
+    """A channel whose sampler stopped at its step cap (``converged`` false) makes the verdict
+    not ok, with a reason naming the channel, the sampler's own reason and how to continue;
+    a converged channel, or a MAP-only fit (no ``converged`` key), gives none.  The same on
+    real chains cut short: tests/test_resume.py and tests/test_faults.py."""
+    from fitmedia.inference.results import assess
+
+    params = {"kappa_s_reduced": {"G": {"map": 1.0}}}
+    chans, images = _results([1.0])
+    chans["G"].update(converged=False, reason="step cap 300 reached at 2.1 tau")
+    verdict = assess(params, chans, images, "single")
+    assert verdict["ok"] is False and len(verdict["reasons"]) == 1
+    assert "sampler of channel G did not converge (step cap 300 reached at 2.1 tau)" in \
+        verdict["reasons"][0] and "--resume --max-steps" in verdict["reasons"][0]
+    chans["G"]["converged"] = True
+    assert assess(params, chans, images, "single")["ok"] is True
+    del chans["G"]["converged"]
+    assert assess(params, chans, images, "single")["ok"] is True
+
+
 def test_fit_exits_1_when_the_guard_fires(monkeypatch, tmp_path, capsys):
     """`fitmedia fit` prints the reason and exits 1 when results' trust is not ok, 0 when it
     is (the fit itself replaced by a stub returning a results dict)."""

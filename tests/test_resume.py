@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import geometry_dict
+from conftest import assert_only_the_sampler_doubted, geometry_dict
 
 
 def _fit_cmd(spec, out, *extra):
@@ -63,10 +63,10 @@ def test_kill_9_and_resume_gives_the_uninterrupted_chain(tmp_path):
 
     res = subprocess.run(_fit_cmd(spec, tmp_path / "killed", "--resume"), capture_output=True,
                          text=True, timeout=600)
-    assert res.returncode == 0, res.stderr
+    assert_only_the_sampler_doubted(res)
     res = subprocess.run(_fit_cmd(spec, tmp_path / "whole"), capture_output=True, text=True,
                          timeout=600)
-    assert res.returncode == 0, res.stderr
+    assert_only_the_sampler_doubted(res)
     for ch in "RGB":
         a = np.load(tmp_path / "killed" / f"checkpoint_{ch}.npz")["chain"]
         b = np.load(tmp_path / "whole" / f"checkpoint_{ch}.npz")["chain"]
@@ -91,7 +91,7 @@ def two_mode_capture(tmp_path_factory):
     spec.write_text(spec.read_text() + "channels: [R]\n")
     res = subprocess.run(_fit_cmd(spec, d / "whole"), capture_output=True, text=True,
                          timeout=600)
-    assert res.returncode == 0, res.stderr
+    assert_only_the_sampler_doubted(res)
     return spec, d / "whole"
 
 
@@ -111,7 +111,7 @@ def test_kill_during_either_mode_and_resume(two_mode_capture, tmp_path, watched)
     _start_and_kill(spec, tmp_path / "killed", watched)
     res = subprocess.run(_fit_cmd(spec, tmp_path / "killed", "--resume"), capture_output=True,
                          text=True, timeout=600)
-    assert res.returncode == 0, res.stderr
+    assert_only_the_sampler_doubted(res)
     killed = tmp_path / "killed"
     for name in ("checkpoint_R.npz", "checkpoint_R_mode2.npz"):
         a = np.load(killed / name)["chain"]

@@ -13,7 +13,8 @@ from ..version import __version__
 from ..regimes import regime, tank_optical_depths
 from ..spec import CHANNELS
 from ..trust import (log_kappa_s_sd, misfit_checks, not_separable_note, reduced_from_laplace,
-                     reduced_from_samples, separable, single_scattering_checks, transport_reasons)
+                     reduced_from_samples, sampler_reasons, separable, single_scattering_checks,
+                     transport_reasons)
 from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
 from .params import ALBEDO_UNIFORM_WEIGHT
@@ -211,7 +212,7 @@ def assess(params: dict, chans: dict[str, dict], images: list[dict], model: str,
     the guard gets ``optical_depth_regime`` None: its kappa_t, hence its optical depth, is
     biased by an unknown amount."""
     checks, reasons = misfit_checks(chans, images, model, robust=robust)
-    reasons += transport_reasons(chans)
+    reasons += transport_reasons(chans) + sampler_reasons(chans)
     ms_reasons, ms_notes = single_scattering_checks(chans, checks)
     reasons += ms_reasons
     for ch, c in checks.items():
