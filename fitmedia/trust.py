@@ -201,7 +201,7 @@ def sampler_reasons(chans: dict[str, dict]) -> list[str]:
                 f"the posterior sampler of channel {ch} did not converge"
                 + (f" ({why})" if why else "")
                 + f": the intervals of channel {ch} are not reliable; continue the chain with "
-                "`fitmedia fit ... --resume --max-steps N` (N above the steps it ran)")
+                "fitmedia fit ... --resume --max-steps N (N above the steps it ran)")
     return reasons
 
 

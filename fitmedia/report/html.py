@@ -336,7 +336,11 @@ def _model_text(results: dict) -> str:
 
 
 def _trust_causes(results: dict) -> str:
-    """Common causes of an untrusted result, for the model that was used."""
+    """Common causes of an untrusted result, for the model that was used; none where every
+    reason is a sampler that did not converge (its reason says what to do)."""
+    reasons = (results.get("trust") or {}).get("reasons") or []
+    if reasons and all("sampler of channel" in r and "did not converge" in r for r in reasons):
+        return ""
     if results.get("model_used", results.get("model")) == "full":
         return ("With full transport: the multiple-scattering term's Monte Carlo error, which "
                 "moves the fit by more than its intervals (docs/inference.md, 'Full transport "
