@@ -189,10 +189,8 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
 def sampler_reasons(chans: dict[str, dict]) -> list[str]:
     """Plain-words reasons for channels whose posterior sampler did not converge (results.json's
     ``diagnostics.channels.<ch>.converged`` false, with its ``reason``): the intervals of such a
-    chain are not a posterior's.  Measured: chains stopped short of 50 autocorrelation times
-    put 0.4-3 % of the mass on the albedo's plateau where the posterior has 3.9 %
-    (docs/inference.md, "The albedo move").  Until 2026-12-03 ``fitmedia fit`` only warned
-    and exited 0."""
+    chain are not known to be a posterior's (docs/inference.md, "Posterior": 50 tau, R-hat,
+    bulk ESS).  Until 2026-12-03 ``fitmedia fit`` only warned and exited 0."""
     reasons = []
     for ch, info in chans.items():
         if info.get("converged") is False:
