@@ -16,8 +16,8 @@ water (docs/testing.md, "Bad-input corpus", gives the runs):
   hold their own models).  The chains add at most 2 x 20000 steps x 24 walkers x 7 values.
 * the multiple-scattering tracer (since 2026-12-02 in every fit of a bulb, since stop 25 of
   a spot too: ``--model single``'s check and ``auto``'s share trace it, ``full`` refreshes
-  it; ``synth --model hybrid``): about 1 GB per process that traces, as it traces in chunks of 2^20 paths and
-  keeps its freed memory (ms_paths.TRACE_CHUNK, util.keep_freed_memory).  Measured at 64 x 48
+  it; ``synth --model hybrid``): about 1 GB per process that traces, as it traces in chunks
+  of 2^20 paths and keeps its freed memory (ms_paths.TRACE_CHUNK, util.keep_freed_memory).  Measured at 64 x 48
   (Lowfat Milk 16 ml, one worker, maximum resident set): ``fit --model single --no-mcmc``
   1.20 GiB against 0.30 GiB estimated without it; ``synth --model hybrid`` 1.09 GiB against
   0.15 GiB; ``fit --model full

@@ -340,3 +340,18 @@ def test_residual_panel_uses_the_fits_own_variance(fit_outputs, tmp_path):
     np.savez(out / "fit_images.npz", **z)
     assert "&sigma;&sup2; = gain&middot;model + read_var" in \
         write_report(out).read_text(encoding="ascii")
+
+
+def test_trust_causes_left_out_for_an_unconverged_sampler_only():
+    """The red box's "common causes" paragraph (misfit causes) is left out when every reason
+    is that of a sampler that did not converge (trust.sampler_reasons of the same
+    diagnostics), and kept when any other reason is there."""
+    from fitmedia.report.html import _trust_causes
+    from fitmedia.trust import sampler_reasons
+
+    chans = {"G": {"converged": False, "reason": "step cap 200 reached"}}
+    res = {"model": "single", "diagnostics": {"channels": chans},
+           "trust": {"reasons": sampler_reasons(chans)}}
+    assert _trust_causes(res) == ""
+    res["trust"]["reasons"].append("the model (single) does not describe the images")
+    assert "Common causes" in _trust_causes(res)

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from ..trust import sampler_reasons
 from ..version import __version__
 from ..errors import InputError
 from ..regimes import INFORMATIVE_OPTICAL_DEPTH
@@ -339,7 +340,8 @@ def _trust_causes(results: dict) -> str:
     """Common causes of an untrusted result, for the model that was used; none where every
     reason is a sampler that did not converge (its reason says what to do)."""
     reasons = (results.get("trust") or {}).get("reasons") or []
-    if reasons and all("sampler of channel" in r and "did not converge" in r for r in reasons):
+    chans = (results.get("diagnostics") or {}).get("channels") or {}
+    if reasons and set(reasons) <= set(sampler_reasons(chans)):
         return ""
     if results.get("model_used", results.get("model")) == "full":
         return ("With full transport: the multiple-scattering term's Monte Carlo error, which "
