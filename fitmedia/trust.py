@@ -124,8 +124,9 @@ RESTART_SD = 3.0
 #: more than about one sd of it is an error the intervals do not show
 FINAL_MOVE_SD = 1.5
 #: with the full model, an optimum with g of the other sign within this many log-posterior
-#: units leaves the sign of g undetermined: the single model's bound for sampling both modes
-#: (the full model has no two-mode sampler)
+#: units leaves the sign of g undetermined: the bound for sampling both modes.  With the
+#: sampler both are sampled and mixed by their masses (``sampled`` true: no reason); without
+#: it (``--no-mcmc``) the values of one mode are not the answer, a reason
 OTHER_G_DELTA = OTHER_MODE_DELTA
 
 
@@ -145,7 +146,7 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"Monte Carlo error explains; the values of channel {ch} are uncertain by more "
                 "than their intervals show")
         other = ms.get("other_g_mode") or {}
-        if other.get("delta_log_posterior") is not None \
+        if other.get("delta_log_posterior") is not None and not other.get("sampled") \
                 and not other["delta_log_posterior"] < -OTHER_G_DELTA:
             reasons.append(
                 f"with the full-transport model, g of the other sign in channel {ch} (g "

@@ -129,6 +129,9 @@ def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understa
                                      "delta_log_posterior": -OTHER_G_DELTA + 1.0}}
     (reason,) = transport_reasons({"R": {"multiple_scattering": near}})
     assert "g of the other sign in channel R (g -0.91" in reason and "not determined" in reason
+    # ... unless both modes were sampled and mixed by their masses (fit_channel)
+    sampled = {**base, "other_g_mode": {**near["other_g_mode"], "sampled": True, "weight": 0.3}}
+    assert transport_reasons({"R": {"multiple_scattering": sampled}}) == []
     far = {**base, "other_g_mode": {"g": -0.91, "kappa_t": 9.1,
                                     "delta_log_posterior": -OTHER_G_DELTA - 1.0}}
     assert transport_reasons({"R": {"multiple_scattering": far}}) == []
@@ -413,3 +416,71 @@ def test_spot_scan_finds_the_multiple_scattering_a_single_fit_absorbed(tmp_path)
     assert rc == 0 and not any("thinner medium" in r for r in res["trust"]["reasons"])
     for info in res["diagnostics"]["channels"].values():
         assert info["multiple_scattering"]["spot_scan_verdict"] is None
+
+
+class LocalStubFullTransport(StubFullTransport):
+    """StubFullTransport with a *local* model, as the real one has: ``refresh`` remembers the
+    sign of g where it was built, and the term is exact only on that side; on the other it
+    is three times too large (a local model used far outside its range)."""
+
+    def __init__(self, single: SingleScattering):
+        super().__init__(single)
+        self._local = None
+        self.refreshed_at: list[float] = []
+
+    def refresh(self, kappa_a, kappa_s, g, brightness=None) -> None:
+        super().refresh(kappa_a, kappa_s, g, brightness)
+        self._local = float(np.sign(np.ravel(g)[0]))
+        self.refreshed_at.append(float(np.ravel(g)[0]))
+
+    def ms_part(self, kappa_a, kappa_s, g, brightness):
+        if self._local is None:
+            self.refresh(kappa_a, kappa_s, g)
+        term, var = super().ms_part(kappa_a, kappa_s, g, brightness)
+        wrong = np.sign(np.ravel(g)[0]) != self._local
+        return (3.0 * term if wrong else term), var
+
+
+def test_second_mode_of_g_is_sampled_on_a_local_model_rebuilt_there(rng):
+    """The two-mode sampler with full transport (fit._sample_other_mode): the second mode's
+    chain must run on the term's local model rebuilt at that mode, and the first mode's local
+    model must be back afterwards.  Compared with an independent evaluation: the MAP of the
+    exact stub posterior (its term exact for every g) on the other sign of g, found directly.
+    Negative control: on the first mode's local model (term 3x too large there) that MAP is
+    elsewhere, so a sampler that skipped the refresh would fail the comparison."""
+    from fitmedia.inference.fit import _sample_other_mode
+    from fitmedia.inference.result import FitOptions
+    from fitmedia.inference.sample import half_space, run_chain
+
+    single, problem, space, truth, _ = _stub_problem(rng, 0.0004, LocalStubFullTransport)
+    stub = problem.obs[0].model
+    problem.refresh_models(truth)
+    problem.adapt(truth)
+    log_post = half_space(problem.log_posterior, 2, truth[2])
+    res = find_map(log_post, truth, space.lower, space.upper, global_evals=0)
+    chain = run_chain(log_post, res.x, res.cov, space.lower, space.upper,
+                      rng=np.random.default_rng(1), n_tau=1e6, max_steps=200, progress=False)
+    alt_start = res.x.copy()
+    alt_start[2] = np.arctanh(-0.5)
+    alt = find_map(half_space(problem.log_posterior, 2, alt_start[2]), alt_start, space.lower,
+                   space.upper, global_evals=0, laplace=False)  # on the wrong local model
+    var_before = [np.copy(v) for v in problem._model_var]
+    opts = FitOptions(n_tau=1e6, max_steps=200, progress=False)
+    other = {"g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
+             "delta_log_posterior": -1.0}
+    out = _sample_other_mode(problem, space, res, alt, chain, log_post, opts, None, [1, 0], "G",
+                             other)
+    # the independent reference: the exact stub's optimum with g < 0
+    exact = StubFullTransport(single)
+    problem.obs[0].model = exact
+    ref = find_map(half_space(problem.log_posterior, 2, alt_start[2]), alt.x, space.lower,
+                   space.upper, global_evals=0, laplace=False)
+    g2 = out["modes"][1]["g_map"]
+    assert g2 < 0 and abs(g2 - np.tanh(ref.x[2])) < 0.02, (g2, np.tanh(ref.x[2]))
+    # negative control: the first mode's local model puts that optimum elsewhere
+    assert abs(np.tanh(alt.x[2]) - np.tanh(ref.x[2])) > 0.05, (alt.x, ref.x)
+    # the second chain ran where the local model was rebuilt at g < 0, and mode 1's is back
+    assert any(g < 0 for g in stub.refreshed_at) and stub._local == 1.0
+    assert all(np.array_equal(a, b) for a, b in zip(var_before, problem._model_var))
+    samples2 = out["samples"][np.tanh(out["samples"][:, 2]) < 0]
+    assert len(samples2) == out["modes"][1]["n_samples_used"]

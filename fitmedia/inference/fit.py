@@ -270,7 +270,12 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     if options.model != "single" and forward is None and stays is None:
         res, transport = _full_transport(problem, space, res, spec, channel, options, seed, alt)
         if transport["model_used"] == "full":
-            alt = None  # the other g mode was judged with single scattering only
+            # the other sign of g as the full model found it (its delta from local models
+            # rebuilt at each point), sampled too where it is close (_sample_other_mode)
+            alt = transport.pop("full_other_mode_map", None)
+            other = transport.get("full_other_g_mode")
+            if alt is not None:
+                alt.log_posterior = res.log_posterior + other["delta_log_posterior"]
     elif forward is None:
         transport = _single_ms_check(problem, space, res, spec, channel, seed)
     if stays is not None:  # auto kept single scattering (a declared single render)
@@ -289,6 +294,8 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     if options.mcmc:
         out.update(_sample_channel(problem, space, res, alt, other_mode, options, rng,
                                    checkpoint, [seed, CHANNELS.index(channel)], channel, identity))
+        if out.get("full_other_g_mode") is not None and "modes" in out:
+            out["full_other_g_mode"] = out["other_g_mode"]  # sampled: trust.py reads it
         if transport.get("ms_term_cov") is not None:
             from .full import convolve_samples
 
@@ -436,7 +443,8 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     scattering share there, and (full, or auto: :func:`_auto_choice`) the full-transport MAP
     and the checks on it (inference/full.py).  ``alt``: the single-scattering optimum with g of
     the other sign, if one was found; refined with the full model too, the better one kept
-    (``full_other_g_mode`` the other).  Returns the MAP and ``fit_channel``'s fields."""
+    (``full_other_g_mode`` the other, and ``full_other_mode_map`` its MapResult, for the
+    sampler: :func:`fit_channel`).  Returns the MAP and ``fit_channel``'s fields."""
     from .full import (distance_sd, more_paths, ms_images, ms_share, refine_map, restart_shift,
                        seed_shift, term_jackknife, use_full_transport, use_single_scattering)
 
@@ -465,8 +473,11 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                 alt_full, res, alt_info, alt.x, lp_alt, lp_res
             problem.refresh_models(res.x)
             problem.adapt(res.x)
-        other_g = {"g": float(np.tanh(alt_full.x[2])), "kappa_t": float(np.exp(alt_full.x[0])),
-                   "delta_log_posterior": float(lp_alt - lp_res)}
+        if _opposite_g(alt_full.x, res.x) and abs(np.tanh(alt_full.x[2])) >= SAME_MODE_G:
+            other_g = {"g": float(np.tanh(alt_full.x[2])),
+                       "kappa_t": float(np.exp(alt_full.x[0])),
+                       "delta_log_posterior": float(lp_alt - lp_res)}
+            out["full_other_mode_map"] = alt_full  # for the sampler (fit_channel)
     # the checks on the loop's fixed point, at the loop's paths
     term_cov = term_jackknife(problem, res)
     restart_sd, restart_x = restart_shift(problem, space, res, single_x, term_cov)
@@ -631,27 +642,32 @@ def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt,
                        seed: list[int], channel: str, other_mode: dict,
                        identity: dict | None = None) -> dict:
     """Sample the other sign's mode of g with a chain of its own (quadrature nodes adapted to
-    it), measure both modes' posterior masses by bridge sampling, and mix the two chains'
-    samples by those masses.  Returns the fields of ``fit_channel``'s result that change.
+    it; with full transport, the local model of the multiple-scattering term rebuilt there,
+    the same random numbers), measure both modes' posterior masses by bridge sampling, and
+    mix the two chains' samples by those masses.  Returns the fields of ``fit_channel``'s
+    result that change.
 
     The second chain and the bridge/mixing draw from random streams of their own (``seed``
     plus 2 and 3): a resumed first chain skips its initial draws, and must not shift them."""
     rng = np.random.default_rng([*seed, 3])
     mass = [mode_log_mass(log_post, chain.samples, chain.log_prob_samples, space.lower,
                           space.upper, rng, n_eff=_min_ess(chain))]
-    problem.adapt(alt.x)
-    log_alt = half_space(problem.log_posterior, 2, alt.x[2])
-    polished = find_map(log_alt, alt.x, space.lower, space.upper, global_evals=0)
-    ckpt = None if checkpoint is None else checkpoint.with_name(
-        checkpoint.stem + "_mode2" + checkpoint.suffix)
-    chain2 = run_chain(log_alt, polished.x, polished.cov, space.lower, space.upper,
-                       rng=np.random.default_rng([*seed, 2]),
-                       checkpoint=ckpt, resume=options.resume, n_walkers=options.n_walkers,
-                       n_tau=options.n_tau, max_steps=options.max_steps,
-                       progress=options.progress, label=f"{channel} mode 2",
-                       redraw=albedo_redraw(space, polished.x, polished.cov), identity=identity)
-    mass.append(mode_log_mass(log_alt, chain2.samples, chain2.log_prob_samples, space.lower,
-                              space.upper, rng, n_eff=_min_ess(chain2)))
+    with problem.models_kept():  # a full-transport model: its local model at res afterwards
+        problem.refresh_models(alt.x)  # full transport: the local model rebuilt at this mode
+        problem.adapt(alt.x)
+        log_alt = half_space(problem.log_posterior, 2, alt.x[2])
+        polished = find_map(log_alt, alt.x, space.lower, space.upper, global_evals=0)
+        ckpt = None if checkpoint is None else checkpoint.with_name(
+            checkpoint.stem + "_mode2" + checkpoint.suffix)
+        chain2 = run_chain(log_alt, polished.x, polished.cov, space.lower, space.upper,
+                           rng=np.random.default_rng([*seed, 2]),
+                           checkpoint=ckpt, resume=options.resume, n_walkers=options.n_walkers,
+                           n_tau=options.n_tau, max_steps=options.max_steps,
+                           progress=options.progress, label=f"{channel} mode 2",
+                           redraw=albedo_redraw(space, polished.x, polished.cov),
+                           identity=identity)
+        mass.append(mode_log_mass(log_alt, chain2.samples, chain2.log_prob_samples,
+                                  space.lower, space.upper, rng, n_eff=_min_ess(chain2)))
     problem.adapt(res.x)
     w = mode_weights(mass)
     idx = mix_modes([chain.samples, chain2.samples], w, rng)

@@ -105,14 +105,19 @@ class ChannelProblem:
     @contextmanager
     def models_kept(self):
         """Within the block the observations' forward models may be replaced and refreshed;
-        afterwards (also after an error) every observation has its model back, with the Monte
-        Carlo variance that model had (``seed_shift``: a second realisation of the term)."""
+        afterwards (also after an error) every observation has its model back, with the local
+        model it had (a full-transport model's ``_local``, which ``refresh`` replaces) and the
+        Monte Carlo variance that model had (``seed_shift``: a second realisation of the term;
+        the sampler of a second mode of g, refreshed there)."""
         models, var = [o.model for o in self.obs], list(self._model_var)
+        local = [getattr(m, "_local", None) for m in models]
         try:
             yield self
         finally:
-            for o, m in zip(self.obs, models):
+            for o, m, loc in zip(self.obs, models, local):
                 o.model = m
+                if hasattr(m, "_local"):
+                    m._local = loc
             self._model_var = var
 
     def refresh_models(self, u: np.ndarray) -> None:
