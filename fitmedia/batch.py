@@ -464,7 +464,7 @@ def _trust_summary(result: FitResult | None) -> dict | None:
     """The misfit guard's verdict of a fit (``ok``, ``reasons``, ``notes``); None for a
     results.json without one."""
     t = result.trust if result is not None else None
-    return {k: t.get(k) for k in ("ok", "reasons", "notes")} if t else None
+    return {k: t.get(k) for k in ("ok", "reasons", "reason_kinds", "notes")} if t else None
 
 
 def _run_fit(task: FitTask) -> dict:

@@ -32,6 +32,29 @@ Z90 = 1.6448536269514722  # the standard normal's 95 % quantile
 Z68 = 0.9944578832097532  # its 84 % quantile
 
 
+class Reason(str):
+    """One of ``trust.reasons``: its plain words, and ``kind``, which check gave it (results.json's
+    ``trust.reason_kinds``, docs/results.md): ``misfit``, ``unsettled``, ``other_g``,
+    ``restart``, ``final_move``, ``seed_shift``, ``sampler``, ``spot_scan`` or
+    ``single_scattering``."""
+
+    kind: str
+
+    def __new__(cls, text: str, kind: str):
+        self = super().__new__(cls, text)
+        self.kind = kind
+        return self
+
+
+def _add(reasons: list, kind: str, text: str) -> None:
+    reasons.append(Reason(text, kind))
+
+
+def reason_kinds(reasons: Sequence[str]) -> list[str]:
+    """The ``kind`` of each reason (``other`` for a plain string)."""
+    return [getattr(r, "kind", "other") for r in reasons]
+
+
 def chi2_limit(n_pixels: int) -> float:
     """The largest chi2/pixel at the MAP that the guard accepts for ``n_pixels`` pixels: the
     upper ``CHI2_TAIL`` quantile of chi2 with ``n_pixels`` degrees of freedom, divided by
@@ -98,10 +121,10 @@ def misfit_checks(chans: dict[str, dict], images: Sequence[dict], model: str, *,
         if bad:
             worst = max(bad, key=lambda i: per[i]["chi2_per_pixel"] / per[i]["limit"])
             c["ok"] = False
-            reasons.append(misfit_reason(ch, per[worst], model, f" (worst: image {worst})",
+            _add(reasons, "misfit", misfit_reason(ch, per[worst], model, f" (worst: image {worst})",
                                          robust))
         elif c["ok"] is False:
-            reasons.append(misfit_reason(ch, c, model, robust=robust))
+            _add(reasons, "misfit", misfit_reason(ch, c, model, robust=robust))
         checks[ch] = c
     return checks, reasons
 
@@ -139,7 +162,7 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
     for ch, info in chans.items():
         ms = info.get("multiple_scattering") or {}
         if ms.get("converged") is False:
-            reasons.append(
+            _add(reasons, "unsettled", 
                 f"the full-transport fit of channel {ch} did not settle: after "
                 f"{ms['refreshes']} refreshes of the multiple-scattering term the best fit still "
                 f"moved by {ms['moves_sd'][-1]:.2g} posterior sd, more than the term's own "
@@ -148,7 +171,7 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
         other = ms.get("other_g_mode") or {}
         if other.get("delta_log_posterior") is not None and not other.get("sampled") \
                 and not other["delta_log_posterior"] < -OTHER_G_DELTA:
-            reasons.append(
+            _add(reasons, "other_g", 
                 f"with the full-transport model, g of the other sign in channel {ch} (g "
                 f"{other['g']:.3g}, kappa_t {other['kappa_t']:.4g}) fits within "
                 f"{-other['delta_log_posterior']:.2g} log-posterior units of the values given: "
@@ -156,7 +179,7 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
         restart = ms.get("restart_shift_sd")
         if restart is not None and not restart <= RESTART_SD:
             second = ms.get("restart_values") or {}
-            reasons.append(
+            _add(reasons, "restart", 
                 f"a second full-transport fit of channel {ch}, started further along the "
                 f"direction in which multiple scattering moves the values, ended {restart:.2g} sd "
                 f"away (kappa_t {second.get('kappa_t', float('nan')):.4g}, g "
@@ -165,7 +188,7 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
         final = ms.get("final_move_sd")
         if final is not None and not final <= FINAL_MOVE_SD:
             move = ms.get("final_move") or {}
-            reasons.append(
+            _add(reasons, "final_move", 
                 f"tracing the multiple-scattering term with {ms.get('final_paths')} paths per "
                 f"sample pixel moved the values of channel {ch} by {final:.2g} sd (kappa_t "
                 f"{100 * move.get('kappa_t', float('nan')):+.1f} %, g {move.get('g', float('nan')):+.3f}): "
@@ -175,12 +198,12 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
         if shift is None:
             continue
         if ms.get("term_sd") is None and not shift <= SEED_SHIFT_SD:
-            reasons.append(
+            _add(reasons, "seed_shift", 
                 f"the multiple-scattering term's own Monte Carlo error moves the values of channel "
                 f"{ch} by {shift:.2g} posterior sd (the term traced again with other random "
                 "numbers); their intervals do not include that error")
         elif ms.get("term_sd") is not None and not shift <= SEED_SHIFT_Z:
-            reasons.append(
+            _add(reasons, "seed_shift", 
                 f"the multiple-scattering term traced again with other random numbers moved the "
                 f"values of channel {ch} by {shift:.2g} times the sd its stated Monte Carlo error "
                 "gives such a move; the intervals understate that error")
@@ -196,7 +219,7 @@ def sampler_reasons(chans: dict[str, dict]) -> list[str]:
     for ch, info in chans.items():
         if info.get("converged") is False:
             why = info.get("reason")
-            reasons.append(
+            _add(reasons, "sampler", 
                 f"the posterior sampler of channel {ch} did not converge"
                 + (f" ({why})" if why else "")
                 + f": the intervals of channel {ch} are not reliable; continue the chain with "
@@ -256,7 +279,7 @@ def single_scattering_checks(chans: dict[str, dict], checks: dict[str, dict]
     for ch, info in chans.items():
         ms = info.get("multiple_scattering") or {}
         if info.get("model_used") == "single" and ms.get("spot_scan_verdict") is not None:
-            reasons.append(_spot_scan_reason(ch, ms))  # a spot's scan: not determined
+            _add(reasons, "spot_scan", _spot_scan_reason(ch, ms))  # a spot's scan: not determined
             continue
         excess, share = ms.get("chi2_excess_if_present"), ms.get("share") or []
         if info.get("model_used") != "single" or excess is None or not share \
@@ -285,7 +308,7 @@ def single_scattering_checks(chans: dict[str, dict], checks: dict[str, dict]
             notes.append(f"{what}, and {blind}; the bias it would cause (up to {100 * bias:.2g} % "
                          f"in kappa_s) is within kappa_s's uncertainty ({100 * sd:.2g} %)")
         else:
-            reasons.append(
+            _add(reasons, "single_scattering", 
                 f"{what}, and {blind}: in a photograph it is there, and then kappa_s of channel "
                 f"{ch} is biased by up to about {100 * bias:.2g} % (measured: {MS_BIAS_PER_SHARE:g} "
                 "times the share at most), more than its stated uncertainty"

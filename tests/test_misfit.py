@@ -86,6 +86,14 @@ def test_unconverged_sampler_is_a_reason():
     assert verdict["ok"] is False and len(verdict["reasons"]) == 1
     assert "sampler of channel G did not converge (step cap 300 reached at 2.1 tau)" in \
         verdict["reasons"][0] and "--resume --max-steps" in verdict["reasons"][0]
+    assert verdict["reason_kinds"] == ["sampler"]
+    # with a misfit as well: one kind per reason, in the reasons' order, plain strings in JSON
+    chans["G"]["chi2_per_pixel"] = 40.0
+    both = assess(params, chans, images, "single")
+    assert both["reason_kinds"] == ["misfit", "sampler"], both["reason_kinds"]
+    assert "does not describe the images" in both["reasons"][0]
+    assert json.loads(json.dumps(both))["reasons"] == both["reasons"]
+    chans["G"]["chi2_per_pixel"] = 1.0
     chans["G"]["converged"] = True
     assert assess(params, chans, images, "single")["ok"] is True
     del chans["G"]["converged"]

@@ -355,3 +355,10 @@ def test_trust_causes_left_out_for_an_unconverged_sampler_only():
     assert _trust_causes(res) == ""
     res["trust"]["reasons"].append("the model (single) does not describe the images")
     assert "Common causes" in _trust_causes(res)
+    # since 2026-12-03 results.json names each reason's kind: the report reads those
+    res["trust"]["reasons"] = ["any words"]
+    res["trust"]["reason_kinds"] = ["sampler"]
+    assert _trust_causes(res) == ""
+    res["trust"]["reasons"].append("more words")
+    res["trust"]["reason_kinds"].append("misfit")
+    assert "Common causes" in _trust_causes(res)

@@ -12,9 +12,9 @@ import numpy as np
 from ..version import __version__
 from ..regimes import regime, tank_optical_depths
 from ..spec import CHANNELS
-from ..trust import (log_kappa_s_sd, misfit_checks, not_separable_note, reduced_from_laplace,
-                     reduced_from_samples, sampler_reasons, separable, single_scattering_checks,
-                     transport_reasons)
+from ..trust import (log_kappa_s_sd, misfit_checks, not_separable_note, reason_kinds,
+                     reduced_from_laplace, reduced_from_samples, sampler_reasons, separable,
+                     single_scattering_checks, transport_reasons)
 from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
 from .params import ALBEDO_UNIFORM_WEIGHT
@@ -220,8 +220,8 @@ def assess(params: dict, chans: dict[str, dict], images: list[dict], model: str,
             chans[ch]["optical_depth_regime"] = None
     notes = [not_separable_note(ch, params["kappa_s_reduced"][ch]) for ch, info in chans.items()
              if info.get("kappa_s_g_separable") is False] + ms_notes
-    return {"ok": not reasons, "model": model, "reasons": reasons, "notes": notes,
-            "misfit": checks}
+    return {"ok": not reasons, "model": model, "reasons": [str(r) for r in reasons],
+            "reason_kinds": reason_kinds(reasons), "notes": notes, "misfit": checks}
 
 
 def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], result: FitResult

@@ -339,9 +339,13 @@ def _model_text(results: dict) -> str:
 def _trust_causes(results: dict) -> str:
     """Common causes of an untrusted result, for the model that was used; none where every
     reason is a sampler that did not converge (its reason says what to do)."""
-    reasons = (results.get("trust") or {}).get("reasons") or []
+    trust = results.get("trust") or {}
+    reasons, kinds = trust.get("reasons") or [], trust.get("reason_kinds")
     chans = (results.get("diagnostics") or {}).get("channels") or {}
-    if reasons and set(reasons) <= set(sampler_reasons(chans)):
+    if kinds is not None and len(kinds) == len(reasons):  # since 2026-12-03
+        if reasons and set(kinds) == {"sampler"}:
+            return ""
+    elif reasons and set(reasons) <= set(sampler_reasons(chans)):  # an older results.json
         return ""
     if results.get("model_used", results.get("model")) == "full":
         return ("With full transport: the multiple-scattering term's Monte Carlo error, which "
