@@ -91,6 +91,8 @@ def cmd_synth(a) -> int:
                       spp=a.spp, brightness=a.brightness, medium_name=name,
                       noise=CameraNoise(a.gain, a.read_var))
     print(f"wrote synthetic capture {path} (truth in {Path(a.out) / 'truth.json'})")
+    for note in json.loads((Path(a.out) / "truth.json").read_text()).get("notes", []):
+        print(f"note: {note}")
     return 0
 
 
