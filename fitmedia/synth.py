@@ -128,7 +128,7 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
     if light.type == "spot":
         raw["light"]["intensity"] = bright.tolist()  # a spot cannot be calibrated by a photo
     entries, truth_imgs = [], []
-    sat_note = []
+    notes = []
     water = np.asarray(spec.water_kappa_a, float)  # the clear water's own absorption, 1/mm
     for k, v in enumerate(ml):
         c = v / tank_ml
@@ -140,7 +140,7 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
             extra["ms_term_error_to_camera_noise"] = ratio = term_noise(clean, err, noise)
             ch = max(ratio, key=lambda c: ratio[c]["median"])
             if ratio[ch]["median"] > HYBRID_TERM_NOISE:
-                sat_note.append(
+                notes.append(
                     f"image {k}: the multiple-scattering term's own Monte Carlo error is "
                     f"{ratio[ch]['median']:.2g} of the camera noise in channel {ch} (median over "
                     f"the water; 90th percentile {ratio[ch]['p90']:.2g}) at {max(spp, 16)} paths "
@@ -151,7 +151,7 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
                     "docs/multiple_scattering.md)")
         n_sat = int(np.sum(np.any(img >= SATURATION, axis=-1)))
         if n_sat:
-            sat_note.append(f"image {k}: {n_sat} pixels saturated")
+            notes.append(f"image {k}: {n_sat} pixels saturated")
         name = f"images/medium_{k:02d}_{v:g}ml.tiff"
         write_float_tiff(out / name, np.minimum(img, SATURATION).astype(np.float32))
         entries.append({"path": name, "exposure_s": 1.0, "concentration": float(c),
@@ -176,6 +176,6 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
         "brightness_meaning": "bulb radiance in the water" if light.type == "bulb"
         else "spot radiant intensity in the water (image units x mm^2)",
         "water_kappa_a": dict(zip(CHANNELS, water.tolist())),
-        "noise": {"gain": noise.gain, "read_var": noise.read_var}, "notes": sat_note,
+        "noise": {"gain": noise.gain, "read_var": noise.read_var}, "notes": notes,
         "units": {"length": "mm", "kappa": "1/mm"},
     }
