@@ -79,6 +79,21 @@ def term_noise(clean: np.ndarray, err: np.ndarray, noise: CameraNoise) -> dict:
     return out
 
 
+def _term_noise_note(k: int, ratio: dict, paths: int) -> list[str]:
+    """truth.json's note for image ``k`` where its term's error (:func:`term_noise`'s
+    ``ratio``) is above ``HYBRID_TERM_NOISE`` of the camera noise in some channel; else none."""
+    ch = max(ratio, key=lambda c: ratio[c]["median"])
+    if not ratio[ch]["median"] > HYBRID_TERM_NOISE:
+        return []
+    return [f"image {k}: the multiple-scattering term's own Monte Carlo error is "
+            f"{ratio[ch]['median']:.2g} of the camera noise in channel {ch} (median over the "
+            f"water; 90th percentile {ratio[ch]['p90']:.2g}) at {paths} paths per pixel, above "
+            f"{HYBRID_TERM_NOISE:g}: the images hold that noise and their noise model does not, "
+            "so a fit's chi2/pixel rises by about its square and its values scatter more than "
+            "their intervals say; render with more --spp (in a typical pixel the error falls "
+            "more slowly than 1/sqrt(spp): docs/multiple_scattering.md)"]
+
+
 def _with_water(tank: Medium, water_kappa_a: np.ndarray) -> Medium:
     """The tank's medium plus the clear water's absorption (spec ``medium.water_kappa_a``)."""
     return Medium(tank.kappa_a + water_kappa_a, tank.kappa_s, tank.g, tank.channels, tank.name)
@@ -138,17 +153,7 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
         extra = {}
         if err is not None:  # hybrid: how large the term's own error is, in camera noise
             extra["ms_term_error_to_camera_noise"] = ratio = term_noise(clean, err, noise)
-            ch = max(ratio, key=lambda c: ratio[c]["median"])
-            if ratio[ch]["median"] > HYBRID_TERM_NOISE:
-                notes.append(
-                    f"image {k}: the multiple-scattering term's own Monte Carlo error is "
-                    f"{ratio[ch]['median']:.2g} of the camera noise in channel {ch} (median over "
-                    f"the water; 90th percentile {ratio[ch]['p90']:.2g}) at {max(spp, 16)} paths "
-                    f"per pixel, above {HYBRID_TERM_NOISE:g}: the images hold that noise "
-                    "and their noise model does not, so a fit's chi2/pixel rises by about its "
-                    "square and its values scatter more than their intervals say; render with "
-                    "more --spp (in a typical pixel the error falls more slowly than 1/sqrt(spp): "
-                    "docs/multiple_scattering.md)")
+            notes += _term_noise_note(k, ratio, max(spp, 16))
         n_sat = int(np.sum(np.any(img >= SATURATION, axis=-1)))
         if n_sat:
             notes.append(f"image {k}: {n_sat} pixels saturated")

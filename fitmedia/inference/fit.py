@@ -465,18 +465,9 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     res, info = refine_map(problem, space, start)
     other_g = None
     if alt is not None:  # the other sign of g, refined with the full model as well
-        alt_full, alt_info = refine_map(problem, space, alt)
-        lp_alt = _log_posterior_refreshed(problem, alt_full.x)
-        lp_res = _log_posterior_refreshed(problem, res.x)
-        if lp_alt > lp_res:
-            res, alt_full, info, single_x, lp_res, lp_alt = \
-                alt_full, res, alt_info, alt.x, lp_alt, lp_res
-            problem.refresh_models(res.x)
-            problem.adapt(res.x)
-        if _opposite_g(alt_full.x, res.x) and abs(np.tanh(alt_full.x[2])) >= SAME_MODE_G:
-            other_g = {"g": float(np.tanh(alt_full.x[2])),
-                       "kappa_t": float(np.exp(alt_full.x[0])),
-                       "delta_log_posterior": float(lp_alt - lp_res)}
+        res, info, single_x, other_g, alt_full = _full_other_g(problem, space, res, info,
+                                                              single_x, alt)
+        if other_g is not None:
             out["full_other_mode_map"] = alt_full  # for the sampler (fit_channel)
     # the checks on the loop's fixed point, at the loop's paths
     term_cov = term_jackknife(problem, res)
@@ -501,6 +492,29 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                               "g": float(np.tanh(res.x[2]) - np.tanh(loop_x[2]))},
                ms_images=ms_images(problem, res.x), full_other_g_mode=other_g)
     return res, out
+
+
+def _full_other_g(problem: ChannelProblem, space: ParameterSpace, res, info, single_x, alt):
+    """The single-scattering optimum ``alt`` with g of the other sign, refined with the full
+    model; the better of it and the full MAP ``res`` (each log posterior with the local model
+    rebuilt there) becomes the MAP.  Returns the MAP, its refreshes' info, the single-scattering
+    point it came from, and the other one (``other_g_mode``'s fields and its MapResult; None,
+    None where it is not of the other sign: it slid into the MAP's region)."""
+    from .full import refine_map
+
+    alt_full, alt_info = refine_map(problem, space, alt)
+    lp_alt = _log_posterior_refreshed(problem, alt_full.x)
+    lp_res = _log_posterior_refreshed(problem, res.x)
+    if lp_alt > lp_res:
+        res, alt_full, info, single_x, lp_res, lp_alt = \
+            alt_full, res, alt_info, alt.x, lp_alt, lp_res
+        problem.refresh_models(res.x)
+        problem.adapt(res.x)
+    if not (_opposite_g(alt_full.x, res.x) and abs(np.tanh(alt_full.x[2])) >= SAME_MODE_G):
+        return res, info, single_x, None, None
+    other = {"g": float(np.tanh(alt_full.x[2])), "kappa_t": float(np.exp(alt_full.x[0])),
+             "delta_log_posterior": float(lp_alt - lp_res)}
+    return res, info, single_x, other, alt_full
 
 
 def _auto_choice(share: list[float], scan: dict | None) -> tuple[bool, str]:
