@@ -270,12 +270,9 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     if options.model != "single" and forward is None and stays is None:
         res, transport = _full_transport(problem, space, res, spec, channel, options, seed, alt)
         if transport["model_used"] == "full":
-            # the other sign of g as the full model found it (its delta from local models
-            # rebuilt at each point), sampled too where it is close (_sample_other_mode)
+            # the other sign of g as the full model found it (its log posterior relative to
+            # the MAP from local models rebuilt at each point), sampled too where it is close
             alt = transport.pop("full_other_mode_map", None)
-            other = transport.get("full_other_g_mode")
-            if alt is not None:
-                alt.log_posterior = res.log_posterior + other["delta_log_posterior"]
     elif forward is None:
         transport = _single_ms_check(problem, space, res, spec, channel, seed)
     if stays is not None:  # auto kept single scattering (a declared single render)
@@ -294,8 +291,6 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     if options.mcmc:
         out.update(_sample_channel(problem, space, res, alt, other_mode, options, rng,
                                    checkpoint, [seed, CHANNELS.index(channel)], channel, identity))
-        if out.get("full_other_g_mode") is not None and "modes" in out:
-            out["full_other_g_mode"] = out["other_g_mode"]  # sampled: trust.py reads it
         if transport.get("ms_term_cov") is not None:
             from .full import convolve_samples
 
@@ -443,8 +438,9 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     scattering share there, and (full, or auto: :func:`_auto_choice`) the full-transport MAP
     and the checks on it (inference/full.py).  ``alt``: the single-scattering optimum with g of
     the other sign, if one was found; refined with the full model too, the better one kept
-    (``full_other_g_mode`` the other, and ``full_other_mode_map`` its MapResult, for the
-    sampler: :func:`fit_channel`).  Returns the MAP and ``fit_channel``'s fields."""
+    (``full_other_mode_map``, its MapResult with the log posterior that puts it its measured
+    distance below the MAP, for ``other_g_mode`` and the sampler: :func:`fit_channel`).
+    Returns the MAP and ``fit_channel``'s fields."""
     from .full import (distance_sd, more_paths, ms_images, ms_share, refine_map, restart_shift,
                        seed_shift, term_jackknife, use_full_transport, use_single_scattering)
 
@@ -467,8 +463,6 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     if alt is not None:  # the other sign of g, refined with the full model as well
         res, info, single_x, other_g, alt_full = _full_other_g(problem, space, res, info,
                                                               single_x, alt)
-        if other_g is not None:
-            out["full_other_mode_map"] = alt_full  # for the sampler (fit_channel)
     # the checks on the loop's fixed point, at the loop's paths
     term_cov = term_jackknife(problem, res)
     restart_sd, restart_x = restart_shift(problem, space, res, single_x, term_cov)
@@ -490,7 +484,10 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                ms_final_move_sd=distance_sd(problem, res, loop_x, term_cov),
                ms_final_move={"kappa_t": float(np.exp(res.x[0] - loop_x[0]) - 1.0),
                               "g": float(np.tanh(res.x[2]) - np.tanh(loop_x[2]))},
-               ms_images=ms_images(problem, res.x), full_other_g_mode=other_g)
+               ms_images=ms_images(problem, res.x))
+    if other_g is not None:  # relative to the final MAP (fit_channel: other_g_mode)
+        alt_full.log_posterior = res.log_posterior + other_g["delta_log_posterior"]
+        out["full_other_mode_map"] = alt_full
     return res, out
 
 

@@ -103,7 +103,7 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
                 "restart_values": f.get("ms_restart_values"),
                 "final_paths": f.get("ms_final_paths"), "final_move": f.get("ms_final_move"),
                 "final_move_sd": f.get("ms_final_move_sd"),
-                "other_g_mode": f.get("full_other_g_mode")}
+                "other_g_mode": f.get("other_g_mode")}
                if f["model_used"] == "full" else {})}
     params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys)
     info.update(kappa_s_reduced_width_ratio=ratio, kappa_s_g_separable=separable(
