@@ -1,8 +1,9 @@
 """The light the analytic single-scattering model leaves out, and the full-transport model.
 
-``MultipleScattering`` estimates, with the path tracer of ``ms_paths``, every path
-that ``SingleScattering`` does not render: scattering orders >= 2, and order 1
-lit through one reflection at the front wall (docs/multiple_scattering.md).  It
+``MultipleScattering`` estimates every path that ``SingleScattering`` does not render:
+scattering orders >= 2, and order 1 lit through one reflection at the front wall
+(docs/multiple_scattering.md): orders 1-2 with the camera paths of ``ms_paths``, and a
+bulb's orders >= 3 with the photons of ``ms_light`` (a spot's with the camera paths).  It
 traces at a reduced resolution (``bin`` x ``bin`` camera pixels per sample
 pixel) and interpolates to the camera's pixels; the term is smooth.  Each render
 returns the image and its per-pixel Monte Carlo standard error (from
@@ -27,6 +28,7 @@ from ..errors import InputError
 from ..geometry import pixel_grid, trace_to_water
 from ..spec import Camera, Spec
 from .base import check_render_args
+from .ms_light import LIGHT_FROM_ORDER, LightTracer
 from .ms_paths import PathTracer
 from .single import SingleScattering
 
@@ -110,6 +112,15 @@ class MultipleScattering:
         x, y = pixel_grid(self.low_camera, sub=4)
         rays = trace_to_water(self.low_camera, spec.tank, spec.medium_ior, np.ravel(x), np.ravel(y))
         self._low_cover = (rays.factor.reshape(x.shape) > 0).mean(axis=-1).ravel()
+        # orders >= LIGHT_FROM_ORDER of a bulb from photons (ms_light: not heavy-tailed);
+        # a spot's every order from the camera paths
+        self.photons = None
+        if self.light.type != "spot":
+            x, y = pixel_grid(self.low_camera, sub=8)
+            rays = trace_to_water(self.low_camera, spec.tank, spec.medium_ior, np.ravel(x),
+                                  np.ravel(y))
+            self.photons = LightTracer(self.tracer,
+                                       (rays.factor.reshape(x.shape) > 0).mean(axis=-1).ravel())
         self._up = _upsampler(self.low_shape, self.camera, self.bin)
         x, y = pixel_grid(self.camera, sub=2)  # fraction of each camera pixel that sees the water
         rays = trace_to_water(self.camera, spec.tank, spec.medium_ior, np.ravel(x), np.ravel(y))
@@ -120,13 +131,40 @@ class MultipleScattering:
                max_order: int = 400) -> np.ndarray:
         """Per-batch, per-order mean radiance at the sample pixels for a unit bulb and albedo 1,
         shape (batches, K, h*w) with K - 1 the highest order reached (index 0 unused), each
-        divided by the fraction of the sample pixel that sees the water (0 where none)."""
-        acc, entered = self.tracer.trace(float(kappa_t), float(g), self.n_paths, int(seed),
+        divided by the fraction of the sample pixel that sees the water (0 where none).
+        A bulb's orders >= ``LIGHT_FROM_ORDER`` are the photons' (``ms_light``), the lower
+        ones the camera paths'; a spot's are all the camera paths'."""
+        return self.orders_at(kappa_t, g, (), seed=seed, rr_albedo=rr_albedo,
+                              max_order=max_order)[0]
+
+    def orders_at(self, kappa_t: float, g: float, variants: tuple[tuple[float, float], ...], *,
+                  seed: int = 0, rr_albedo: float = 1.0, max_order: int = 400
+                  ) -> list[np.ndarray]:
+        """:meth:`orders` at (kappa_t, g) and at each (kappa_t, g) of ``variants``, with the
+        same random numbers (camera paths: one trace per point; photons: one trace, reweighted
+        to each point), padded to one number of orders."""
+        points = [(float(kappa_t), float(g))] + [(float(a), float(b)) for a, b in variants]
+        cam_max = max_order if self.photons is None else min(max_order, LIGHT_FROM_ORDER - 1)
+        runs = [self._camera_orders(kt, gg, seed, rr_albedo, cam_max) for kt, gg in points]
+        if self.photons is not None:
+            lights = self.photons.trace(points[0][0], points[0][1], self.n_paths * self.tracer.n_pix,
+                                        int(seed), self.batches, max_order, rr_albedo,
+                                        from_order=LIGHT_FROM_ORDER, variants=tuple(points[1:]))
+            for r, lt in zip(runs, lights):
+                lt[:, : r.shape[1]] += r[:, :LIGHT_FROM_ORDER]
+            runs = lights
+        last = max(max(np.flatnonzero(r.any(axis=(0, 2))).max(initial=1), 1) for r in runs)
+        return [np.pad(r[:, : last + 1], ((0, 0), (0, max(0, last + 1 - r.shape[1])), (0, 0)))
+                for r in runs]
+
+    def _camera_orders(self, kt: float, g: float, seed: int, rr_albedo: float, max_order: int
+                       ) -> np.ndarray:
+        """The camera paths' per-batch, per-order means (orders up to ``max_order``)."""
+        acc, entered = self.tracer.trace(float(kt), float(g), self.n_paths, int(seed),
                                          self.batches, max_order, rr_albedo)
-        last = max(np.flatnonzero(acc.any(axis=(0, 2))).max(initial=1), 1)
         with np.errstate(divide="ignore", invalid="ignore"):
             per_batch = np.where(entered > 0, entered / self.batches, np.inf)
-        return acc[:, : last + 1] / per_batch
+        return acc[:, : max_order + 1] / per_batch
 
     def smoothed(self, per: np.ndarray) -> np.ndarray:
         """Gaussian smoothing (sigma ``smooth`` sample pixels) of each row of ``per`` (n, h*w),
@@ -283,11 +321,9 @@ class FullTransport:
                 local.append(None)
                 continue
             eta = math.atanh(gg[k])
-            runs = [self.ms.orders(kt, gg[k], seed=self.seed, rr_albedo=a),
-                    self.ms.orders(kt * math.exp(self.step), gg[k], seed=self.seed, rr_albedo=a),
-                    self.ms.orders(kt, math.tanh(eta + self.step), seed=self.seed, rr_albedo=a)]
-            n_ord = max(r.shape[1] for r in runs)
-            runs = [np.pad(r, ((0, 0), (0, n_ord - r.shape[1]), (0, 0))) for r in runs]
+            runs = self.ms.orders_at(kt, gg[k], ((kt * math.exp(self.step), gg[k]),
+                                                 (kt, math.tanh(eta + self.step))),
+                                     seed=self.seed, rr_albedo=a)
             base = runs[0]
             # per batch: the finite differences of each batch (the same paths), so that a
             # batch's derivatives leave with it (leave_out) and their noise is in the variance

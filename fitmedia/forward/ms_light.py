@@ -1,0 +1,195 @@
+"""Light tracing from the bulb: the multiple-scattering term's higher orders.
+
+Photons leave the bulb (a unit-radiance Lambertian sphere: power pi * 4 pi r^2, a uniform
+point on the sphere and a cosine-weighted direction), fly the free-flight distance of the
+medium (analog: no forcing, no guiding), scatter by Henyey–Greenstein, reflect at the front
+wall (the Fresnel choice of ``PathTracer._walls``: its water/glass face, or through the
+glass off its outer face), and end at a black wall or the bulb, or by Russian roulette at the
+render's albedo.  Every collision is connected to the camera exactly: the ray from the
+collision to the pinhole through the plane front wall is found by Newton's method, and the
+collision's intensity I = power * p_HG(in, towards the camera) lands in the pixel it is seen
+in as irradiance at the pinhole, I T exp(-kappa_t l) sin(theta_w) / (rho rho'(theta_a) n_w
+cos(theta_w)), divided by the pixel's solid angle and by the fraction of it that sees the
+water (the camera tracer's units, ``MultipleScattering.orders``).
+
+Why: the camera tracer's per-pixel contributions are heavy-tailed (docs/multiple_scattering.md,
+"Heavy tails per pixel"); a photon's contribution here is bounded (the camera is outside the
+tank, the phase function is bounded), so the per-pixel error falls as photons^(-1/2) and is
+not skewed.  ``MultipleScattering`` takes orders >= ``LIGHT_FROM_ORDER`` from here and the
+lower ones (segment connections: smooth, cheap) from the camera tracer.
+
+Finite differences come from the same photons reweighted (``variants``): a path traced at
+(kappa_t, g) has, at (kappa_t', g'), the weight prod (kappa_t'/kappa_t) exp(-(kappa_t' -
+kappa_t) s) over its flights (s the whole flight, before and after a reflection) times prod
+p_HG(g') / p_HG(g) over its scatterings; its connections are evaluated at (kappa_t', g').
+Unbiased for any (kappa_t', g'), and the images at the three points share every photon, so
+the differences carry no pixel-to-pixel decorrelation.
+
+Units and albedo as ``PathTracer.trace``: per order, albedo 1, a unit-radiance bulb.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..geometry import camera_rays, fresnel_transmittance, project
+from ..medium import hg_phase
+from .ms_paths import RR_MIN, PathTracer, around, sample_hg, sphere_hit, uniforms
+
+#: orders from this one up come from the photons (below: from the camera paths)
+LIGHT_FROM_ORDER = 3
+LIGHT_SALT = 0x5DEECE66D  # photons' random numbers: another stream than the camera paths'
+PHOTON_CHUNK = 1 << 18
+NEWTON_STEPS = 12
+
+
+def pixel_solid_angles(camera, sub: int = 8) -> np.ndarray:
+    """Solid angle (sr) of each pixel at the pinhole, (H*W,): ``sub`` x ``sub`` quads per
+    pixel from the camera's rays at their corners (distortion included)."""
+    xs = np.linspace(0.0, camera.width, camera.width * sub + 1)
+    ys = np.linspace(0.0, camera.height, camera.height * sub + 1)
+    d = camera_rays(camera, *np.meshgrid(xs, ys))
+    area = 0.5 * np.linalg.norm(np.cross(d[1:, 1:] - d[:-1, :-1], d[:-1, 1:] - d[1:, :-1]), axis=-1)
+    return area.reshape(camera.height, sub, camera.width, sub).sum(axis=(1, 3)).ravel()
+
+
+class LightTracer:
+    """Photons from a bulb, connected to the (low-resolution) camera of ``tracer``.
+
+    ``cover``: the fraction of each sample pixel that sees the water (H*W,).
+    """
+
+    def __init__(self, tracer: PathTracer, cover: np.ndarray):
+        if tracer.spot:
+            raise ValueError("LightTracer: a bulb only (a spot's term is the camera tracer's)")
+        self.tr, self.cam = tracer, tracer.camera
+        omega = pixel_solid_angles(self.cam)
+        self.norm = np.where(cover > 0, 1.0 / (omega * np.maximum(cover, 1e-12)), 0.0)
+        self.o = np.asarray(self.cam.position, float)
+        w = tracer.wall
+        self.hz, self.t, self.nw, self.ng = tracer.half[2], w.thickness, w.n_water, w.n_glass
+
+    # ------------------------------------------------------------------ camera
+    def _chief(self, y: np.ndarray):
+        """The ray from ``y`` (in the water) to the pinhole through the front wall: angle in
+        the air theta_a (Newton on rho(theta_a) = D tan theta_a + t tan theta_g + a tan
+        theta_w, convex and increasing), with sines, cosines, d rho / d theta_a and the unit
+        lateral direction."""
+        a = self.hz - y[:, 2]
+        far = self.o[2] - (self.hz + self.t)
+        hvec = self.o[None, :2] - y[:, :2]
+        rho = np.linalg.norm(hvec, axis=1)
+        th = np.arctan2(rho, far + self.t / self.ng + a / self.nw)  # paraxial: below the root
+        for _ in range(NEWTON_STEPS):
+            s, c = np.sin(th), np.cos(th)
+            sg, sw = s / self.ng, s / self.nw
+            cg, cw = np.sqrt(1 - sg * sg), np.sqrt(1 - sw * sw)
+            f = far * s / c + self.t * sg / cg + a * sw / cw - rho
+            df = far / (c * c) + self.t * c / (self.ng * cg**3) + a * c / (self.nw * cw**3)
+            th = np.clip(th - f / df, 0.0, 0.5 * np.pi - 1e-7)
+        hu = np.where(rho[:, None] > 0, hvec / np.maximum(rho, 1e-300)[:, None], 0.0)
+        return th, a, rho, hu
+
+    def connect(self, y: np.ndarray):
+        """Per point: (pixel index or -1, unit direction in the water towards the camera,
+        water path to the wall, irradiance factor T sin(theta_w) / (rho rho' n_w cos theta_w)
+        times the pixel's 1 / (solid angle x water cover))."""
+        th, a, rho, hu = self._chief(y)
+        s, c = np.sin(th), np.cos(th)
+        sg, sw = s / self.ng, s / self.nw
+        cg, cw = np.sqrt(1 - sg * sg), np.sqrt(1 - sw * sw)
+        df = (self.o[2] - self.hz - self.t) / (c * c) + self.t * c / (self.ng * cg**3) \
+            + a * c / (self.nw * cw**3)
+        w = np.column_stack([sw[:, None] * hu, cw])
+        lw = a / cw
+        s_over_rho = np.where(rho > 1e-9, sw / np.maximum(rho, 1e-300), 1.0 / (self.nw * df))
+        trans = (fresnel_transmittance(c, 1.0, self.ng) * fresnel_transmittance(cg, self.ng, self.nw)
+                 if self.t > 0 else fresnel_transmittance(c, 1.0, self.nw))
+        px, py, front = project(self.cam, self.o - np.column_stack([s[:, None] * hu, c]))
+        width, height = self.cam.width, self.cam.height
+        with np.errstate(invalid="ignore"):
+            ok = front & (px >= 0) & (px < width) & (py >= 0) & (py < height)
+        ok &= self.tr._in_face(y + lw[:, None] * w) & (sphere_hit(y, w, self.tr.c, self.tr.r) > lw)
+        pix = np.where(ok, np.floor(np.where(ok, py, 0)).astype(int) * width
+                       + np.floor(np.where(ok, px, 0)).astype(int), -1)
+        fac = np.where(ok, trans * s_over_rho / (df * self.nw * cw) * self.norm[np.maximum(pix, 0)], 0.0)
+        return pix, w, lw, fac
+
+    # ------------------------------------------------------------------- trace
+    def trace(self, kt: float, g: float, n_photons: int, seed: int, batches: int,
+              max_order: int = 400, rr_albedo: float = 1.0, from_order: int = LIGHT_FROM_ORDER,
+              variants: tuple[tuple[float, float], ...] = ()) -> list[np.ndarray]:
+        """Per-batch, per-order mean radiance at the sample pixels, (batches, max_order + 2,
+        H*W) each, for orders >= ``from_order``, at (kt, g) and at each of ``variants``
+        ((kappa_t, g) pairs) from the same photons reweighted.  Order 1 here is all of it:
+        the analytic model's and the part lit through a front-wall reflection (a test's
+        comparison with the analytic model; ``MultipleScattering`` takes orders >= 3)."""
+        if from_order < 1:
+            raise ValueError(f"from_order {from_order}: orders start at 1")
+        points = ((float(kt), float(g)),) + tuple((float(a), float(b)) for a, b in variants)
+        accs = [np.zeros((batches, max_order + 2, self.tr.n_pix)) for _ in points]
+        for lo in range(0, n_photons, PHOTON_CHUNK):
+            pid = np.arange(lo, min(n_photons, lo + PHOTON_CHUNK))
+            self._trace_chunk(accs, points, pid, n_photons, seed, batches, max_order,
+                              rr_albedo, from_order)
+        return accs
+
+    def _emit(self, pid: np.ndarray, seed: int):
+        """Points on the bulb (just outside it) and cosine-weighted directions around its normal."""
+        u = uniforms(seed + LIGHT_SALT, 0, pid, 4)
+        zc = 1.0 - 2.0 * u[:, 0]
+        ph = 2.0 * np.pi * u[:, 1]
+        sz = np.sqrt(np.clip(1.0 - zc * zc, 0.0, None))
+        nrm = np.column_stack([sz * np.cos(ph), sz * np.sin(ph), zc])
+        x = self.tr.c + nrm * self.tr.r * (1.0 + 1e-9)
+        return x, around(nrm, np.sqrt(u[:, 2]), 2.0 * np.pi * u[:, 3])
+
+    def _fly(self, x, v, kt, u):
+        """One free flight (analog, through a front-wall reflection): which photons collide,
+        where, their direction there and the whole flight's length."""
+        s = -np.log1p(-u[:, 0]) / kt
+        stop, (i, xi, vi, d2) = self.tr._walls(x, v, u[:, 1])
+        coll = s < stop
+        rest = s[i] - stop[i]
+        after = ~coll[i] & (rest < d2)  # reflected, and colliding before the next wall
+        x = x + np.minimum(s, stop)[:, None] * v
+        v = v.copy()
+        j = i[after]
+        x[j] = xi[after] + rest[after, None] * vi[after]
+        v[j] = vi[after]
+        coll[j] = True
+        return coll, x, v, s
+
+    def _trace_chunk(self, accs, points, pid, n_photons, seed, batches, max_order, rr_albedo,
+                     from_order):
+        kt, g = points[0]
+        n_pix, width = self.tr.n_pix, max_order + 2
+        q = float(np.clip(rr_albedo, RR_MIN, 1.0))
+        x, v = self._emit(pid, seed)
+        wgt = np.full(len(pid), np.pi * 4.0 * np.pi * self.tr.r ** 2 * batches / n_photons)
+        logr = np.zeros((len(pid), len(points)))  # log of each point's weight over (kt, g)'s
+        kts = np.array([p[0] for p in points])
+        ids = pid
+        for order in range(1, max_order + 1):
+            if not len(ids):
+                break
+            u = uniforms(seed + LIGHT_SALT, order, ids, 5)
+            coll, x, v, s = self._fly(x, v, kt, u)
+            ids, x, v, wgt, logr, s, u = ids[coll], x[coll], v[coll], wgt[coll], logr[coll], s[coll], u[coll]
+            logr += np.log(kts / kt)[None, :] - s[:, None] * (kts - kt)[None, :]
+            if order >= from_order and len(ids):
+                pix, w, lw, fac = self.connect(x)
+                on = pix >= 0
+                cos_c = np.einsum("ij,ij->i", v[on], w[on])
+                flat = ((ids[on] % batches) * width + order) * n_pix + pix[on]
+                for acc, (ktj, gj), lr in zip(accs, points, logr[on].T):
+                    val = wgt[on] * np.exp(lr - ktj * lw[on]) * hg_phase(cos_c, gj) * fac[on]
+                    acc.reshape(-1)[:] += np.bincount(flat, weights=val, minlength=acc.size)
+            alive = u[:, 2] < q
+            v_new = sample_hg(v, g, u[:, 3], u[:, 4])
+            cos_s = np.einsum("ij,ij->i", v, v_new)
+            base = hg_phase(cos_s, g)
+            for j, (_, gj) in enumerate(points[1:], start=1):
+                if gj != g:
+                    logr[:, j] += np.log(hg_phase(cos_s, gj) / base)
+            ids, x, v, wgt, logr = ids[alive], x[alive], v_new[alive], wgt[alive] / q, logr[alive]
