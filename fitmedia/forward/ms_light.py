@@ -168,7 +168,7 @@ class LightTracer:
         coll[j] = True
         return coll, direct, x, v, s
 
-    def _splat(self, accs, points, logr, flat, wgt, w_in, w_cam, g, lw, fac, extra=None):
+    def _splat(self, accs, points, logr, flat, wgt, w_in, w_cam, lw, fac, extra=None):
         """Add one connection per photon to every point's image: weight x exp(log ratio) x
         p_HG(w_in . w_cam) at that point's g x exp(-kappa_t lw) x ``fac`` (x ``extra``, per
         point, where given)."""
@@ -214,12 +214,13 @@ class LightTracer:
                 on = pix >= 0
                 flat = ((ids[on] % batches) * width + order) * n_pix + pix[on]
                 self._splat(accs, points, logr[on], flat, wgt[on] * mis[on], v[on], w_cam[on],
-                            g, lw[on], fac[on])
+                            lw[on], fac[on])
             alive = u[:, 2] < q
             ids, x, v, wgt, logr, u = ids[alive], x[alive], v[alive], wgt[alive] / q, logr[alive], u[alive]
             v_new = sample_hg(v, g, u[:, 3], u[:, 4])
-            p1 = hg_phase(np.einsum("ij,ij->i", v, v_new), g)
-            mis = np.ones(len(ids))
+            cos_s = np.einsum("ij,ij->i", v, v_new)
+            p1 = hg_phase(cos_s, g)
+            mis = np.ones(len(ids))  # the next flight's; set below where it will connect
             if order + 1 >= from_order and len(ids):
                 w0 = w_cam[alive] if w_cam is not None else self.toward_camera(x)
                 mis = p1 / (p1 + hg_phase(np.einsum("ij,ij->i", w0, v_new), g))
@@ -227,7 +228,7 @@ class LightTracer:
                                     batches, width)
             for j in range(1, len(points)):
                 if gs[j] != g:
-                    logr[:, j] += np.log(hg_phase(np.einsum("ij,ij->i", v, v_new), gs[j]) / p1)
+                    logr[:, j] += np.log(hg_phase(cos_s, gs[j]) / p1)
             v = v_new
 
     def _second_flight(self, accs, points, ids, x, v_in, w0, wgt, logr, u, order, batches, width):
@@ -251,5 +252,5 @@ class LightTracer:
         extra = [hg_phase(cos_in, gj) / denom * (ktj / kt) * np.exp(-(ktj - kt) * s2[sel])
                  for ktj, gj in points]
         flat = ((ids[sel] % batches) * width + order) * self.tr.n_pix + pix[on]
-        self._splat(accs, points, logr[sel], flat, wgt[sel], v2[sel], w_cam[on], g, lw[on],
-                    fac[on], extra)
+        self._splat(accs, points, logr[sel], flat, wgt[sel], v2[sel], w_cam[on], lw[on], fac[on],
+                    extra)
