@@ -168,16 +168,17 @@ class LightTracer:
         coll[j] = True
         return coll, direct, x, v, s
 
-    def _splat(self, accs, points, logr, flat, wgt, w_in, w_cam, lw, fac, extra=None):
+    def _splat(self, accs, points, order, logr, cell, wgt, w_in, w_cam, lw, fac, extra=None):
         """Add one connection per photon to every point's image: weight x exp(log ratio) x
         p_HG(w_in . w_cam) at that point's g x exp(-kappa_t lw) x ``fac`` (x ``extra``, per
-        point, where given)."""
+        point, where given), into order ``order`` at ``cell`` = batch * pixels + pixel."""
         cos_c = np.einsum("ij,ij->i", w_in, w_cam)
         for j, (acc, (ktj, gj)) in enumerate(zip(accs, points)):
             val = wgt * np.exp(logr[:, j] - ktj * lw) * hg_phase(cos_c, gj) * fac
             if extra is not None:
                 val = val * extra[j]
-            acc.reshape(-1)[:] += np.bincount(flat, weights=val, minlength=acc.size)
+            acc[:, order, :] += np.bincount(cell, weights=val, minlength=acc.shape[0] * acc.shape[2]
+                                            ).reshape(acc.shape[0], acc.shape[2])
 
     def _trace_chunk(self, accs, points, pid, n_photons, seed, batches, max_order, rr_albedo,
                      from_order):  # long: one loop over the orders, its state in locals
@@ -191,7 +192,7 @@ class LightTracer:
         is about the mean of the lobe's product.  Flights through a front-wall reflection
         only the first strategy makes: weight 1."""
         kt, g = points[0]
-        n_pix, width = self.tr.n_pix, max_order + 2
+        n_pix = self.tr.n_pix
         q = float(np.clip(rr_albedo, RR_MIN, 1.0))
         x, v = self._emit(pid, seed)
         wgt = np.full(len(pid), np.pi * 4.0 * np.pi * self.tr.r ** 2 * batches / n_photons)
@@ -212,9 +213,8 @@ class LightTracer:
             if order >= from_order and len(ids):
                 pix, w_cam, lw, fac = self.connect(x)
                 on = pix >= 0
-                flat = ((ids[on] % batches) * width + order) * n_pix + pix[on]
-                self._splat(accs, points, logr[on], flat, wgt[on] * mis[on], v[on], w_cam[on],
-                            lw[on], fac[on])
+                self._splat(accs, points, order, logr[on], (ids[on] % batches) * n_pix + pix[on],
+                            wgt[on] * mis[on], v[on], w_cam[on], lw[on], fac[on])
             alive = u[:, 2] < q
             ids, x, v, wgt, logr, u = ids[alive], x[alive], v[alive], wgt[alive] / q, logr[alive], u[alive]
             v_new = sample_hg(v, g, u[:, 3], u[:, 4])
@@ -224,14 +224,13 @@ class LightTracer:
             if order + 1 >= from_order and len(ids):
                 w0 = w_cam[alive] if w_cam is not None else self.toward_camera(x)
                 mis = p1 / (p1 + hg_phase(np.einsum("ij,ij->i", w0, v_new), g))
-                self._second_flight(accs, points, ids, x, v, w0, wgt, logr, u, order + 1,
-                                    batches, width)
+                self._second_flight(accs, points, ids, x, v, w0, wgt, logr, u, order + 1, batches)
             for j in range(1, len(points)):
                 if gs[j] != g:
                     logr[:, j] += np.log(hg_phase(cos_s, gs[j]) / p1)
             v = v_new
 
-    def _second_flight(self, accs, points, ids, x, v_in, w0, wgt, logr, u, order, batches, width):
+    def _second_flight(self, accs, points, ids, x, v_in, w0, wgt, logr, u, order, batches):
         """The second strategy of :meth:`_trace_chunk` at scattering points ``x`` (incoming
         ``v_in``, camera direction ``w0``): a direction from the phase lobe around ``w0``, a
         free flight (no reflection: else nothing), and the connection there, weighted
@@ -251,6 +250,5 @@ class LightTracer:
         denom = hg_phase(cos_in, g) + hg_phase(np.einsum("ij,ij->i", w0[sel], v2[sel]), g)
         extra = [hg_phase(cos_in, gj) / denom * (ktj / kt) * np.exp(-(ktj - kt) * s2[sel])
                  for ktj, gj in points]
-        flat = ((ids[sel] % batches) * width + order) * self.tr.n_pix + pix[on]
-        self._splat(accs, points, logr[sel], flat, wgt[sel], v2[sel], w_cam[on], lw[on], fac[on],
-                    extra)
+        self._splat(accs, points, order, logr[sel], (ids[sel] % batches) * self.tr.n_pix + pix[on],
+                    wgt[sel], v2[sel], w_cam[on], lw[on], fac[on], extra)
