@@ -28,9 +28,15 @@ from fitmedia.inference.optimize import find_map
 from fitmedia.inference.params import ChannelParams
 from ms_realisation import problem  # docs/studies/ is on sys.path when this file is run
 
+import fitmedia.forward.multiple as _multiple
+
+if os.environ.get("STUDY_LFO"):  # photons from this order on (default: LIGHT_FROM_ORDER)
+    _multiple.LIGHT_FROM_ORDER = int(os.environ["STUDY_LFO"])
+
 
 def _variant(prob, o, spec, t, ch, b):
-    """STUDY_VAR=zero: no term variance in the likelihood; =smooth: the term's relative
+    """STUDY_VAR=zero: no term variance in the likelihood (the excess of
+    ChannelProblem.log_likelihood is capped at that variance, so none either); =smooth: the term's relative
     variance pooled over the glow times the square of the term smoothed (sigma 2 px), so that
     a pixel's weight does not follow its own realisation; =noderiv: the term held at its value
     at the truth; =drefN: the finite differences from an independent trace at N paths (nearly
@@ -42,11 +48,23 @@ def _variant(prob, o, spec, t, ch, b):
     mode = os.environ.get("STUDY_VAR", "")
     if not mode:
         return
-    if mode == "noderiv":  # the term held at its value at the truth
+    if mode.startswith("noderiv"):  # the term held at its value at the truth
+        # noderiv+zero: and no term variance in the likelihood; +avg: the term the mean of
+        # STUDY_NAVG (16) traces at n_paths with seeds from STUDY_AVG0 (700); +exact: one
+        # trace at STUDY_NREF (4096) paths; both with no term variance either
+        then = mode.partition("+")[2]
+        if then == "avg":
+            n = int(os.environ.get("STUDY_NAVG", 16))
+            first = int(os.environ.get("STUDY_AVG0", 700))
+            _fixed_term(o, spec, t, ch, b, [(first + s, o.model.ms.n_paths) for s in range(n)])
+        elif then == "exact":
+            _fixed_term(o, spec, t, ch, b, [(999, int(os.environ.get("STUDY_NREF", 4096)))])
         for loc in o.model._local:
             if loc is not None:
-                loc["d_kt"] = 0 * loc["d_kt"]
-                loc["d_g"] = 0 * loc["d_g"]
+                loc["d_kt"] = 0 * loc["batches"]
+                loc["d_g"] = 0 * loc["batches"]
+        if then:
+            prob._model_var[0] = 0.0
         return
     if mode.startswith("dref"):  # derivatives from an independent trace at many paths
         n_ref, _, then = mode[4:].partition("+")  # e.g. dref4096+zero
@@ -83,6 +101,24 @@ def _variant(prob, o, spec, t, ch, b):
     prob._model_var[0] = (rel * ms**2 * o.model.ms.bin**2).ravel()[o.flat_idx]
 
 
+def _fixed_term(o, spec, t, ch, b, traces):
+    """Replace the local model's per-order batches by the mean of ``traces`` ((seed, paths)
+    pairs) built at the truth."""
+    ci = F.CHANNELS.index(ch)
+    c = spec.images[0].concentration
+    medium = ([c * t["kappa_a"][ch] + spec.water_kappa_a[ci]], [c * t["kappa_s"][ch]],
+              [t["g"][ch]], [b])
+    runs = []
+    for seed, n_paths in traces:
+        ref = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=1, n_paths=n_paths,
+                            single=o.model.single)
+        ref.refresh(*medium)
+        runs.append(ref._local[0]["batches"])
+    k = max(x.shape[1] for x in runs)
+    o.model._local[0]["batches"] = np.mean(
+        [np.pad(x, ((0, 0), (0, k - x.shape[1]), (0, 0))) for x in runs], axis=0)
+
+
 def main():
     cap = Path(sys.argv[1])
     n_paths = int(sys.argv[2]) if len(sys.argv) > 2 else 256
@@ -97,7 +133,8 @@ def main():
     rows = []
     for seed in seeds:
         o.model = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=1, n_paths=n_paths,
-                                single=single, step=float(os.environ.get("STUDY_STEP", 0.05)))
+                                single=single, step=float(os.environ.get("STUDY_STEP", 0.05)),
+                                batches=int(os.environ.get("STUDY_BATCHES", 16)))
         o.model.ms.smooth = float(os.environ.get("STUDY_SMOOTH", o.model.ms.smooth))
         prob.refresh_models(xt)
         prob.adapt(xt)

@@ -304,6 +304,7 @@ class FullTransport:
         self.shape, self.support = self.single.shape, self.single.support
         self.seed, self.step = int(seed), float(step)
         self._local: list | None = None
+        self._var0: np.ndarray | None = None
         #: index of a batch of paths the term leaves out (the jackknife of
         #: inference/full.py: term_jackknife), or None for all of them
         self.leave_out: int | None = None
@@ -331,6 +332,9 @@ class FullTransport:
                           "d_kt": (runs[1] - base) / self.step,
                           "d_g": (runs[2] - base) / self.step})
         self._local = local
+        # the term's Monte Carlo variance at the refresh point, unit brightness
+        # (render_with_variance: what it changes by away from there)
+        self._var0 = self.ms_part(ka, ks, gg, np.ones(c), excess=True)[2]
 
     def needs_refresh(self, kappa_a, kappa_s, g, tol: float = 0.1) -> bool:
         """True when no local model exists or (log kappa_t, atanh g) of a scattering channel
@@ -347,32 +351,57 @@ class FullTransport:
                 return True
         return False
 
-    def ms_part(self, kappa_a, kappa_s, g, brightness) -> tuple[np.ndarray, np.ndarray]:
+    def ms_part(self, kappa_a, kappa_s, g, brightness, *, excess: bool = False) -> tuple:
         """The multiple-scattering image and its Monte Carlo variance, both (H, W, C), from
         the local model (the variance is that of the refresh point's estimate at this
-        albedo, with the noise of the finite differences, which each batch has of its own)."""
+        albedo, with the noise of the finite differences, which each batch has of its own).
+        ``excess``: a third image, the part of that variance that shifts a fit
+        (``render_with_variance``): the term's own variance at this albedo plus twice its
+        covariance with each finite difference times the step, without the finite
+        differences' own variance (which only flattens the local model away from its point)."""
         c = len(self.channels)
         ka, ks, gg, br = check_render_args(c, kappa_a, kappa_s, g, brightness)
         if self._local is None:
             self.refresh(ka, ks, gg)
-        img, var = np.zeros((*self.shape, c)), np.zeros((*self.shape, c))
+        img, var, exc = (np.zeros((*self.shape, c)) for _ in range(3))
         for k, loc in enumerate(self._local):
             if loc is None or ks[k] <= 0:
                 continue
             kt = ka[k] + ks[k]
-            dk, dg = math.log(kt / loc["kt"]), math.atanh(gg[k]) - loc["eta"]
+            steps = (1.0, math.log(kt / loc["kt"]), math.atanh(gg[k]) - loc["eta"])
             pw = (ks[k] / kt) ** np.arange(loc["batches"].shape[1])
             pw[0] = 0.0
-            per = sum(c * np.tensordot(loc[name], pw, axes=([1], [0]))
-                      for c, name in ((1.0, "batches"), (dk, "d_kt"), (dg, "d_g")))
+            parts = [np.tensordot(loc[name], pw, axes=([1], [0]))
+                     for name in ("batches", "d_kt", "d_g")]
             if self.leave_out is not None:
-                per = np.delete(per, self.leave_out, axis=0)
-            per = self.ms.smoothed(per)
+                parts = [np.delete(x, self.leave_out, axis=0) for x in parts]
+            parts = [self.ms.smoothed(x) for x in parts]
+            per = sum(h * x for h, x in zip(steps, parts))
+            n = per.shape[0]
             mean = np.clip(per.mean(axis=0), 0.0, None)
-            err = per.std(axis=0, ddof=1) / math.sqrt(per.shape[0])
+            err = per.std(axis=0, ddof=1) / math.sqrt(n)
             img[..., k] = (self.ms.upsample(mean) * br[k]).reshape(self.shape)
             var[..., k] = ((self.ms.upsample(err) * br[k]) ** 2).reshape(self.shape)
-        return img, var
+            if excess:
+                dev = [x - x.mean(axis=0) for x in parts]
+                q = sum(f * h * np.sum(dev[0] * d, axis=0)
+                        for f, h, d in zip((1.0, 2.0, 2.0), steps, dev)) / (n * (n - 1))
+                exc[..., k] = ((self.ms._up @ q) * (self.ms._cover * br[k]) ** 2).reshape(self.shape)
+        return (img, var, exc) if excess else (img, var)
+
+    def render_with_variance(self, kappa_a, kappa_s, g, brightness
+                             ) -> tuple[np.ndarray, np.ndarray]:
+        """The image (``render``) and how much the Monte Carlo variance that moves a fit
+        (``ms_part``'s ``excess``) is larger here than at the refresh point, both (H, W, C):
+        the likelihood takes out what that change adds to the squared residuals
+        (inference/likelihood.py: ``ChannelProblem.log_likelihood``).  A spot's term (camera
+        paths alone, heavy-tailed: their batch variance is no estimate to subtract) has None
+        here."""
+        if self.ms.photons is None:
+            return self.render(kappa_a, kappa_s, g, brightness), None
+        img, _, exc = self.ms_part(kappa_a, kappa_s, g, brightness, excess=True)
+        br = check_render_args(len(self.channels), kappa_a, kappa_s, g, brightness)[3]
+        return self.single.render(kappa_a, kappa_s, g, brightness) + img, exc - self._var0 * br ** 2
 
     def render(self, kappa_a, kappa_s, g, brightness) -> np.ndarray:
         """Image (H, W, C): analytic orders 0 and 1 plus the local multiple-scattering term."""
