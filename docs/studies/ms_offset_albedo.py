@@ -19,26 +19,19 @@ at 48 x 36; the 19 traces are kept in CAPTURE_DIR/../ms_offset_traces.npz)
 """
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from fitmedia.forward.multiple import FullTransport
-from fitmedia.inference import fit as F
 from fitmedia.inference.optimize import find_map
-from fitmedia.inference.params import ChannelParams
-from ms_realisation import problem  # docs/studies/ is on sys.path when this file is run
+from ms_realisation import at_truth  # docs/studies/ is on sys.path when this file is run
 
 
 def setup(cap: Path):
-    spec, ch, ci, b, space, prob = problem(cap)
-    t = json.loads((cap / "truth.json").read_text())["undiluted"]
-    xt = space.to_vector(ChannelParams(t["kappa_t"][ch], t["albedo"][ch], t["g"][ch], b))
-    prob.adapt(xt)
+    spec, ch, ci, b, space, prob, t, xt, single = at_truth(cap)
     o = prob.obs[0]
-    single = getattr(o.model, "single", o.model)
     c = spec.images[0].concentration
     medium = ([c * t["kappa_a"][ch] + spec.water_kappa_a[ci]], [c * t["kappa_s"][ch]],
               [t["g"][ch]], [b])

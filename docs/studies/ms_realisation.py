@@ -49,6 +49,18 @@ def problem(cap: Path = CAP):
     return spec, ch, ci, b, space, prob
 
 
+def at_truth(cap: Path):
+    """:func:`problem` with the truth: (spec, channel, channel index, brightness, space,
+    problem adapted at the truth, truth.json's undiluted values, the truth's vector, the
+    analytic model)."""
+    spec, ch, ci, b, space, prob = problem(cap)
+    t = json.loads((cap / "truth.json").read_text())["undiluted"]
+    xt = space.to_vector(ChannelParams(t["kappa_t"][ch], t["albedo"][ch], t["g"][ch], b))
+    prob.adapt(xt)
+    o = prob.obs[0]
+    return spec, ch, ci, b, space, prob, t, xt, getattr(o.model, "single", o.model)
+
+
 def main():
     n_paths = int(sys.argv[1]) if len(sys.argv) > 1 else 256
     if len(sys.argv) > 2:

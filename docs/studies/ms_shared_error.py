@@ -14,7 +14,6 @@ Run: python docs/studies/ms_shared_error.py CAPTURE_DIR [N_PATHS] [SEEDS]
 """
 from __future__ import annotations
 
-import json
 import os
 import sys
 from pathlib import Path
@@ -25,8 +24,7 @@ from fitmedia.forward.multiple import FullTransport
 from fitmedia.inference import fit as F
 from fitmedia.inference.full import term_jackknife
 from fitmedia.inference.optimize import find_map
-from fitmedia.inference.params import ChannelParams
-from ms_realisation import problem  # docs/studies/ is on sys.path when this file is run
+from ms_realisation import at_truth  # docs/studies/ is on sys.path when this file is run
 
 import fitmedia.forward.multiple as _multiple
 
@@ -124,12 +122,8 @@ def main():
     n_paths = int(sys.argv[2]) if len(sys.argv) > 2 else 256
     first = int(os.environ.get("STUDY_SEED0", 11))  # the capture's own seed: its very term
     seeds = range(first, first + (int(sys.argv[3]) if len(sys.argv) > 3 else 8))
-    spec, ch, _, b, space, prob = problem(cap)
-    t = json.loads((cap / "truth.json").read_text())["undiluted"]
-    xt = space.to_vector(ChannelParams(t["kappa_t"][ch], t["albedo"][ch], t["g"][ch], b))
-    prob.adapt(xt)
+    spec, ch, _, b, space, prob, t, xt, single = at_truth(cap)
     o = prob.obs[0]
-    single = getattr(o.model, "single", o.model)
     rows = []
     for seed in seeds:
         o.model = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=1, n_paths=n_paths,
