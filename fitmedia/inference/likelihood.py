@@ -188,8 +188,10 @@ class ChannelProblem:
         expectation over the realisations is that of the likelihood with the exact term, and
         at u0 it is the plain likelihood, so that values at different refresh points compare
         as before (a noisier point gains nothing).  Per pixel it is capped at the term's
-        variance per camera pixel at u0 either way (measured without the cap: a spot's scan found gains of
-        10^4 at points where the local model was used far from its albedo)."""
+        variance per camera pixel at u0 either way: far from its refresh point the estimate
+        is unreliable (before the cap, and before a spot's term was left out, a spot's scan
+        found gains of 10^4 log-posterior units at points where the local model was used far
+        from its albedo)."""
         total = 0.0
         for k, (o, (m, mc)) in enumerate(zip(self.obs, self._images(u))):
             var = self.variance(k, m)
