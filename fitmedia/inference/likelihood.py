@@ -150,27 +150,29 @@ class ChannelProblem:
             if freeze is not None:
                 freeze(o.concentration * p.kappa_t + self.water_kappa_a, p.g)
 
-    def render(self, u: np.ndarray) -> list[np.ndarray]:
-        """Model images (H, W) for the parameter vector ``u``."""
+    def _medium(self, u: np.ndarray):
+        """Per observation, its forward model's arguments (kappa_a, kappa_s, g, brightness) at
+        ``u``; and the background."""
         p = self.space.to_params(u)
         b = p.brightness if self.space.free_brightness else self.brightness
-        return [o.model.render(o.concentration * p.kappa_a + self.water_kappa_a,
-                               o.concentration * p.kappa_s, p.g, b)[..., 0] + p.background
-                for o in self.obs]
+        return [(o.concentration * p.kappa_a + self.water_kappa_a, o.concentration * p.kappa_s,
+                 p.g, b) for o in self.obs], p.background
+
+    def render(self, u: np.ndarray) -> list[np.ndarray]:
+        """Model images (H, W) for the parameter vector ``u``."""
+        args, background = self._medium(u)
+        return [o.model.render(*a)[..., 0] + background for o, a in zip(self.obs, args)]
 
     def _images(self, u: np.ndarray) -> list[tuple[np.ndarray, np.ndarray | None]]:
         """Per observation: its used pixels' model values and, for a model with a Monte Carlo
         part (``render_with_variance``), how much that part's variance at ``u`` exceeds its
         variance at the local model's refresh point (else None)."""
-        p = self.space.to_params(u)
-        b = p.brightness if self.space.free_brightness else self.brightness
+        args, background = self._medium(u)
         out = []
-        for o in self.obs:
-            args = (o.concentration * p.kappa_a + self.water_kappa_a, o.concentration * p.kappa_s,
-                    p.g, b)
+        for o, a in zip(self.obs, args):
             with_var = getattr(o.model, "render_with_variance", None)
-            img, mc = with_var(*args) if with_var is not None else (o.model.render(*args), None)
-            out.append((img[..., 0].ravel()[o.flat_idx] + p.background,
+            img, mc = with_var(*a) if with_var is not None else (o.model.render(*a), None)
+            out.append((img[..., 0].ravel()[o.flat_idx] + background,
                         None if mc is None else mc[..., 0].ravel()[o.flat_idx]))
         return out
 
