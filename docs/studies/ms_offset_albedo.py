@@ -69,6 +69,7 @@ def main():
         loc["batches"] = batch
         loc["d_kt"] = loc["d_g"] = 0 * batch
         prob._model_var[0] = 0.0
+        o.model.render_with_variance = None  # the plain likelihood: no excess either
         r = find_map(prob.log_posterior, xt, lo, hi, global_evals=0, laplace=False)
         p = space.to_params(r.x)
         print(f"{label}: kappa_t {p.kappa_t / t['kappa_t'][ch] - 1:+.4f} g {p.g - t['g'][ch]:+.4f}"

@@ -28,13 +28,17 @@ from ms_realisation import at_truth  # docs/studies/ is on sys.path when this fi
 
 import fitmedia.forward.multiple as _multiple
 
+#: camera pixels per traced sample pixel (the fit's own: inference.full.trace_bin; 1 here
+#: unless STUDY_BIN says otherwise)
+BIN = int(os.environ.get("STUDY_BIN", 1))
+
 if os.environ.get("STUDY_LFO"):  # photons from this order on (default: LIGHT_FROM_ORDER)
     _multiple.LIGHT_FROM_ORDER = int(os.environ["STUDY_LFO"])
 
 
 def _variant(prob, o, spec, t, ch, b):
-    """STUDY_VAR=zero: no term variance in the likelihood (the excess of
-    ChannelProblem.log_likelihood is capped at that variance, so none either); =smooth: the term's relative
+    """STUDY_VAR=zero: no term variance in the likelihood, nor the excess of
+    ChannelProblem.log_likelihood; =smooth: the term's relative
     variance pooled over the glow times the square of the term smoothed (sigma 2 px), so that
     a pixel's weight does not follow its own realisation; =noderiv: the term held at its value
     at the truth; =drefN: the finite differences from an independent trace at N paths (nearly
@@ -63,10 +67,11 @@ def _variant(prob, o, spec, t, ch, b):
                 loc["d_g"] = 0 * loc["batches"]
         if then:
             prob._model_var[0] = 0.0
+            o.model.render_with_variance = None  # nor its excess (the plain likelihood)
         return
     if mode.startswith("dref"):  # derivatives from an independent trace at many paths
         n_ref, _, then = mode[4:].partition("+")  # e.g. dref4096+zero
-        ref = FullTransport(spec, 0, channels=(ch,), seed=999, bin=1, n_paths=int(n_ref),
+        ref = FullTransport(spec, 0, channels=(ch,), seed=999, bin=BIN, n_paths=int(n_ref),
                             single=o.model.single)
         ci = F.CHANNELS.index(ch)
         c = spec.images[0].concentration
@@ -87,6 +92,7 @@ def _variant(prob, o, spec, t, ch, b):
             return
     if mode == "zero":
         prob._model_var[0] = 0.0
+        o.model.render_with_variance = None  # nor its excess (the plain likelihood)
         return
     ci = F.CHANNELS.index(ch)
     c = spec.images[0].concentration
@@ -108,7 +114,7 @@ def _fixed_term(o, spec, t, ch, b, traces):
               [t["g"][ch]], [b])
     runs = []
     for seed, n_paths in traces:
-        ref = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=1, n_paths=n_paths,
+        ref = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=BIN, n_paths=n_paths,
                             single=o.model.single)
         ref.refresh(*medium)
         runs.append(ref._local[0]["batches"])
@@ -126,7 +132,7 @@ def main():
     o = prob.obs[0]
     rows = []
     for seed in seeds:
-        o.model = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=1, n_paths=n_paths,
+        o.model = FullTransport(spec, 0, channels=(ch,), seed=seed, bin=BIN, n_paths=n_paths,
                                 single=single, step=float(os.environ.get("STUDY_STEP", 0.05)),
                                 batches=int(os.environ.get("STUDY_BATCHES", 16)))
         o.model.ms.smooth = float(os.environ.get("STUDY_SMOOTH", o.model.ms.smooth))

@@ -192,6 +192,10 @@ class MultipleScattering:
         """Sample-pixel values (per unit water area) -> camera pixels (times the water cover)."""
         return (self._up @ low) * self._cover
 
+    def upsample_rows(self, low: np.ndarray) -> np.ndarray:
+        """:meth:`upsample` of each row of ``low`` (n, h*w): (n, H*W)."""
+        return (self._up @ low.T).T * self._cover
+
     def share(self, kappa_a, kappa_s, g, *, seed: int = 0,
               single: SingleScattering | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Share of multiple scattering in the glow per channel, MS / (analytic + MS) summed
@@ -383,10 +387,14 @@ class FullTransport:
             img[..., k] = (self.ms.upsample(mean) * br[k]).reshape(self.shape)
             var[..., k] = ((self.ms.upsample(err) * br[k]) ** 2).reshape(self.shape)
             if excess:
+                # at the camera's pixels, each batch's deviation interpolated: a camera pixel
+                # between sample pixels mixes their independent errors, and its variance is
+                # sum w_i^2 s_i^2, not the interpolated sum w_i s_i^2 (2.6 times that at bin 2,
+                # where the likelihood's excess then overshot: docs/inference.md)
                 dev = [x - x.mean(axis=0) for x in parts]
-                q = sum(f * h * np.sum(dev[0] * d, axis=0)
-                        for f, h, d in zip((1.0, 2.0, 2.0), steps, dev)) / (n * (n - 1))
-                exc[..., k] = ((self.ms._up @ q) * (self.ms._cover * br[k]) ** 2).reshape(self.shape)
+                mix = sum(f * h * d for f, h, d in zip((1.0, 2.0, 2.0), steps, dev))
+                q = np.sum(self.ms.upsample_rows(dev[0]) * self.ms.upsample_rows(mix), axis=0)
+                exc[..., k] = (q * br[k] ** 2 / (n * (n - 1))).reshape(self.shape)
         return (img, var, exc) if excess else (img, var)
 
     def render_with_variance(self, kappa_a, kappa_s, g, brightness
@@ -396,12 +404,18 @@ class FullTransport:
         the likelihood takes out what that change adds to the squared residuals
         (inference/likelihood.py: ``ChannelProblem.log_likelihood``).  A spot's term (camera
         paths alone, heavy-tailed: their batch variance is no estimate to subtract) has None
-        here."""
+        here.  Per pixel the change is capped at the variance at the refresh point either way:
+        far from there (the albedo has no trust region) the estimate is no longer reliable
+        (before the cap, and before a spot's term was left out, a spot's scan found gains of
+        10^4 log-posterior units at points where the local model was used far from its
+        albedo)."""
         if self.ms.photons is None:
             return self.render(kappa_a, kappa_s, g, brightness), None
         img, _, exc = self.ms_part(kappa_a, kappa_s, g, brightness, excess=True)
         br = check_render_args(len(self.channels), kappa_a, kappa_s, g, brightness)[3]
-        return self.single.render(kappa_a, kappa_s, g, brightness) + img, exc - self._var0 * br ** 2
+        var0 = self._var0 * br ** 2
+        return (self.single.render(kappa_a, kappa_s, g, brightness) + img,
+                np.clip(exc - var0, -var0, var0))
 
     def render(self, kappa_a, kappa_s, g, brightness) -> np.ndarray:
         """Image (H, W, C): analytic orders 0 and 1 plus the local multiple-scattering term."""

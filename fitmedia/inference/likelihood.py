@@ -189,11 +189,8 @@ class ChannelProblem:
         excess relative to the refresh point u0 (``render_with_variance``): the slope of its
         expectation over the realisations is that of the likelihood with the exact term, and
         at u0 it is the plain likelihood, so that values at different refresh points compare
-        as before (a noisier point gains nothing).  Per pixel it is capped at the term's
-        variance per camera pixel at u0 either way: far from its refresh point the estimate
-        is unreliable (before the cap, and before a spot's term was left out, a spot's scan
-        found gains of 10^4 log-posterior units at points where the local model was used far
-        from its albedo)."""
+        as before (a noisier point gains nothing); the model caps it per pixel
+        (``render_with_variance``)."""
         total = 0.0
         for k, (o, (m, mc)) in enumerate(zip(self.obs, self._images(u))):
             var = self.variance(k, m)
@@ -202,11 +199,7 @@ class ChannelProblem:
                 total += float(np.sum(-0.5 * (STUDENT_NU + 1) * np.log1p(r2 / STUDENT_NU)
                                       - 0.5 * np.log(var)))
             else:
-                # at most the term's variance per camera pixel either way (``var`` holds it
-                # bin**2 times: refresh_models): far from the refresh point (the albedo has
-                # no trust region) the estimate is no longer reliable
-                mv = self._model_var[k] / getattr(getattr(o.model, "ms", None), "bin", 1) ** 2
-                excess = 0.0 if mc is None else float(np.sum(np.clip(mc, -mv, mv) / var))
+                excess = 0.0 if mc is None else float(np.sum(mc / var))
                 total += float(-0.5 * (np.sum(r2 + np.log(var)) - excess))
         return total
 
