@@ -27,7 +27,7 @@ from fitmedia.spec import load_spec
 from fitmedia.inference.full import (AUTO_SHARE, FINAL_PATHS_FACTOR, MOVE_TOL_SD, refine_map,
                                     restart_shift)
 from fitmedia.inference.likelihood import ChannelProblem, Observation
-from fitmedia.inference.optimize import find_map
+from fitmedia.inference.optimize import MapResult, find_map
 from fitmedia.inference.params import ChannelParams, ParameterSpace
 
 DATA = Path(__file__).resolve().parent / "data" / "misfit"
@@ -102,6 +102,32 @@ def test_refresh_loop_recovers_a_stub_full_transport_capture(rng):
     # a second fit started beyond the MAP (restart_shift) comes back to it: one fixed point
     shift, other = restart_shift(problem, space, full, res.x, None)
     assert shift < 1.0, (shift, other, full.x)
+
+
+def test_refresh_loop_reaches_a_map_far_from_its_start(rng):
+    """The trust region grows while the polishes end on its edge (inference/full.py:
+    ``TRUST_MAX``): the refresh loop started a factor e^2.2 below the truth's kappa_t (as far as
+    dense milk's single-scattering MAP, 89 % low) reaches the stub capture's MAP within 4 sd and
+    settles in ``MAX_REFRESH`` refreshes.  Control: with the half-width held at
+    ``TRUST_STEP`` the same loop cannot (8 steps of 0.25 reach e^2.0)."""
+    import fitmedia.inference.full as full_mod
+
+    single, problem, space, truth, res = _stub_problem(rng, 0.0004)
+    problem.obs[0].model = StubFullTransport(single)
+    far = truth.copy()
+    far[0] -= 2.2
+    start = MapResult(far, problem.log_posterior(far), 0, None)
+    full, info = refine_map(problem, space, start)
+    assert info.converged, info.moves_sd
+    for j in (0, 2):
+        assert abs(full.x[j] - truth[j]) < 4 * _sd(full, j), (j, full.x, truth)
+    held = pytest.MonkeyPatch()
+    held.setattr(full_mod, "TRUST_MAX", full_mod.TRUST_STEP)
+    try:
+        _, info_held = refine_map(problem, space, start)
+    finally:
+        held.undo()
+    assert not info_held.converged, info_held.moves_sd
 
 
 def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understated():

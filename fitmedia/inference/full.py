@@ -6,7 +6,8 @@ a local model of the term (per-order images and their finite differences in
 log kappa_t and atanh g, the same random numbers) built around one point.  The
 fitter finds the single-scattering MAP first, then alternates: refresh the local
 model at the current MAP, polish the MAP with it (within a trust region where the
-local model is first-order accurate), until the MAP moves by less than
+local model is first-order accurate; its half-width doubles, up to ``TRUST_MAX``, while
+the polishes end on its edge), until the MAP moves by less than
 ``MOVE_TOL_SD`` of its posterior sd, or by less than what two realisations of the term
 explain (``term_jackknife``: each refresh at a new point is partly a new realisation, and
 that error is in the values' uncertainty).  After the checks on that fixed point (another
@@ -46,6 +47,10 @@ MAX_REFRESH = 8
 #: each polish stays within this of the refresh point in log kappa_t and atanh g: the local
 #: model is first order there, and FullTransport.needs_refresh's own tolerance is 0.1
 TRUST_STEP = 0.25
+#: a polish that ends on the trust region's edge doubles the next one's half-width, up to
+#: this (the MAP is far away, as for dense milk from its single-scattering MAP: 8 steps of
+#: 0.25 reach a factor e^2 in kappa_t); one inside it resets the half-width to TRUST_STEP
+TRUST_MAX = 1.0
 #: ``--model auto`` switches to full transport above this multiple-scattering share of the
 #: glow (sum over the pixels that do not see the bulb); docs/multiple_scattering.md
 AUTO_SHARE = 0.02
@@ -164,13 +169,22 @@ def use_single_scattering(problem: ChannelProblem, x: np.ndarray) -> None:
     problem.adapt(x)
 
 
-def _trust_region(space: ParameterSpace, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The bounds within which a local model built at ``x`` is used: ``TRUST_STEP`` either way
-    in log kappa_t and atanh g (the local model's coordinates), the space's bounds else."""
+def _trust_region(space: ParameterSpace, x: np.ndarray, step: float = TRUST_STEP
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The bounds within which a local model built at ``x`` is used: ``step`` either way in
+    log kappa_t and atanh g (the local model's coordinates), the space's bounds else."""
     lo, hi = space.lower.copy(), space.upper.copy()
     for j in (0, 2):
-        lo[j], hi[j] = max(lo[j], x[j] - TRUST_STEP), min(hi[j], x[j] + TRUST_STEP)
+        lo[j], hi[j] = max(lo[j], x[j] - step), min(hi[j], x[j] + step)
     return lo, hi
+
+
+def _on_edge(space: ParameterSpace, x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether ``x`` lies on a trust-region bound ``lo``/``hi`` of log kappa_t or atanh g
+    that is not also the space's own bound."""
+    tol = 1e-3 * TRUST_STEP
+    return any((x[j] - lo[j] < tol and lo[j] > space.lower[j])
+               or (hi[j] - x[j] < tol and hi[j] < space.upper[j]) for j in (0, 2))
 
 
 def trace_bin(cam) -> int:
@@ -185,17 +199,19 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
     Returns the full-transport MAP (Laplace covariance over the whole bounds) and what the
     refreshes did; ``info.converged`` is False when ``MAX_REFRESH`` refreshes did not settle."""
     info = FullFitInfo()
-    res = start
+    res, step = start, TRUST_STEP
     for _ in range(max_refresh):
         problem.refresh_models(res.x)
         problem.adapt(res.x)
-        lo, hi = _trust_region(space, res.x)
+        lo, hi = _trust_region(space, res.x, step)
         new = find_map(problem.log_posterior, np.clip(res.x, lo, hi), lo, hi, global_evals=0)
+        step = min(2.0 * step, TRUST_MAX) if _on_edge(space, new.x, lo, hi) else TRUST_STEP
         move = distance_sd(problem, new, res.x, None)
         jitter = _in_term_units(res.x, new.x, _cov_or_ridge(problem, new),
                                 term_jackknife(problem, new))
-        log.debug("full transport: refresh %d at %s -> %s, move %.3g sd, %.3g in term units",
-                  info.refreshes + 1, np.round(res.x, 4), np.round(new.x, 4), move, jitter)
+        log.debug("full transport: refresh %d at %s -> %s, move %.3g sd, %.3g in term units; "
+                  "next trust half-width %.2f", info.refreshes + 1, np.round(res.x, 4),
+                  np.round(new.x, 4), move, jitter, step)
         info.refreshes += 1
         info.moves_sd.append(move)
         info.moves_term.append(jitter)
