@@ -337,8 +337,9 @@ class FullTransport:
                           "d_g": (runs[2] - base) / self.step})
         self._local = local
         # the term's Monte Carlo variance at the refresh point, unit brightness
-        # (render_with_variance: what it changes by away from there)
-        self._var0 = self.ms_part(ka, ks, gg, np.ones(c), excess=True)[2]
+        # (render_with_variance: what it changes by away from there; a spot has none)
+        self._var0 = None if self.ms.photons is None else \
+            self.ms_part(ka, ks, gg, np.ones(c), excess=True)[2]
 
     def needs_refresh(self, kappa_a, kappa_s, g, tol: float = 0.1) -> bool:
         """True when no local model exists or (log kappa_t, atanh g) of a scattering channel

@@ -482,13 +482,10 @@ def more_paths(problem: ChannelProblem, space: ParameterSpace, res: MapResult, *
 def ms_images(problem: ChannelProblem, u: np.ndarray) -> list[np.ndarray] | None:
     """Per observation, the multiple-scattering part (H, W) of the model image at ``u`` (None
     when the problem's models have none)."""
-    p = problem.space.to_params(u)
-    b = p.brightness if problem.space.free_brightness else problem.brightness
     out = []
-    for o in problem.obs:
+    for o, medium in zip(problem.obs, problem._medium(u)[0]):
         part = getattr(o.model, "ms_part", None)
         if part is None:
             return None
-        out.append(part([o.concentration * p.kappa_a + problem.water_kappa_a],
-                        [o.concentration * p.kappa_s], [p.g], [b])[0][..., 0])
+        out.append(part(*medium)[0][..., 0])
     return out

@@ -126,14 +126,11 @@ class ChannelProblem:
         take its Monte Carlo variance there into the likelihood.  That variance is inflated by
         the camera pixels per traced sample pixel (``bin**2``): they share one error, which
         independent per-pixel variances would count that many times (inference/full.py)."""
-        p = self.space.to_params(u)
-        b = p.brightness if self.space.free_brightness else self.brightness
-        for k, o in enumerate(self.obs):
+        args, _ = self._medium(u)
+        for k, (o, medium) in enumerate(zip(self.obs, args)):
             refresh = getattr(o.model, "refresh", None)
             if refresh is None:
                 continue
-            medium = ([o.concentration * p.kappa_a + self.water_kappa_a],
-                      [o.concentration * p.kappa_s], [p.g], [b])
             refresh(*medium)
             _, var = o.model.ms_part(*medium)
             self._model_var[k] = var[..., 0].ravel()[o.flat_idx] * o.model.ms.bin ** 2
