@@ -45,6 +45,45 @@ def _binned_camera(cam: Camera, b: int) -> Camera:
                                fx=cam.fx / b, fy=cam.fy / b, cx=cam.cx / b, cy=cam.cy / b)
 
 
+#: iterations of back-projection in the term's upsampling (``_sharpened``): 0 is plain
+#: bilinear interpolation, whose smoothing of the glow's peak at bin 2 made the term 9 % low
+#: next to the bulb and moved kappa_t and g (docs/multiple_scattering.md, "Upsampling")
+BACKPROJECT = 2
+
+
+def _block_mean(low: tuple[int, int], cam: Camera, b: int, cover: np.ndarray) -> sparse.csr_matrix:
+    """(h*w, H*W): each sample pixel's mean over its b x b camera pixels, per unit water area
+    (each camera pixel weighted by the fraction ``cover`` of it that sees the water), which is
+    what a sample pixel's traced value estimates; 0 for a sample pixel that sees no water."""
+    h, w = low
+    yy, xx = np.meshgrid(np.arange(cam.height), np.arange(cam.width), indexing="ij")
+    blk = ((yy // b) * w + xx // b).ravel()
+    tot = np.bincount(blk, weights=cover, minlength=h * w)
+    wts = np.divide(cover, tot[blk], out=np.zeros_like(cover), where=tot[blk] > 0)
+    return sparse.csr_matrix((wts, (blk, np.arange(cam.height * cam.width))),
+                             shape=(h * w, cam.height * cam.width))
+
+
+def _only_water(up: sparse.csr_matrix, water: np.ndarray) -> sparse.csr_matrix:
+    """The interpolation ``up`` from the sample pixels that see water (``water``) alone, each
+    row's weights renormalised to sum 1 (a sample pixel that sees none holds 0, not the
+    field's value: interpolating from it would pull the edge of the water towards 0)."""
+    kept = up @ sparse.diags(water.astype(float))
+    tot = np.asarray(kept.sum(axis=1)).ravel()
+    return (sparse.diags(np.divide(1.0, tot, out=np.zeros_like(tot), where=tot > 0)) @ kept).tocsr()
+
+
+def _sharpened(up: sparse.csr_matrix, block: sparse.csr_matrix, n: int) -> sparse.csr_matrix:
+    """The upsampler ``up`` (camera <- sample pixels, per unit water area) with ``n`` steps
+    of back-projection: f_0 = up low, f_(k+1) = f_k + up (low - block f_k), so that the
+    camera image's block means (``block``) approach the sample pixels' values instead of a
+    smoothed copy of them.  Linear in ``low``: returns the matrix sum_j (I - up block)^j up."""
+    out = up
+    for _ in range(n):
+        out = (up + out - up @ (block @ out)).tocsr()
+    return out
+
+
 def _upsampler(low: tuple[int, int], cam: Camera, b: int) -> sparse.csr_matrix:
     """Bilinear interpolation (H*W, h*w) from the sample pixels' centres to the camera's."""
     h, w = low
@@ -121,11 +160,16 @@ class MultipleScattering:
                                   np.ravel(y))
             self.photons = LightTracer(self.tracer,
                                        (rays.factor.reshape(x.shape) > 0).mean(axis=-1).ravel())
-        self._up = _upsampler(self.low_shape, self.camera, self.bin)
+        self._up = _upsampler(self.low_shape, self.camera, self.bin)  # bilinear: the errors'
         x, y = pixel_grid(self.camera, sub=2)  # fraction of each camera pixel that sees the water
         rays = trace_to_water(self.camera, spec.tank, spec.medium_ior, np.ravel(x), np.ravel(y))
         self._cover = (rays.factor.reshape(x.shape) > 0).mean(axis=-1).ravel()
         self.support = self._cover.reshape(self.shape) > 0
+        # the values' upsampler: bilinear sharpened by back-projection (exactly bilinear at
+        # bin 1, where camera and sample pixels coincide)
+        self._up_mean = self._up if self.bin == 1 else _sharpened(
+            _only_water(self._up, self._low_cover > 0),
+            _block_mean(self.low_shape, self.camera, self.bin, self._cover), BACKPROJECT)
 
     def orders(self, kappa_t: float, g: float, *, seed: int = 0, rr_albedo: float = 1.0,
                max_order: int = 400) -> np.ndarray:
@@ -186,15 +230,21 @@ class MultipleScattering:
         per = self.smoothed(np.tensordot(orders, pw, axes=([1], [0])))  # (batches, h*w)
         mean = per.mean(axis=0)
         err = per.std(axis=0, ddof=1) / math.sqrt(per.shape[0])
-        return self.upsample(mean), self.upsample(err)
+        return self.upsample(mean), self.upsample_err(err)
 
     def upsample(self, low: np.ndarray) -> np.ndarray:
-        """Sample-pixel values (per unit water area) -> camera pixels (times the water cover)."""
-        return (self._up @ low) * self._cover
+        """Sample-pixel values (per unit water area) -> camera pixels (times the water cover):
+        bilinear interpolation sharpened by ``BACKPROJECT`` steps of back-projection."""
+        return (self._up_mean @ low) * self._cover
 
     def upsample_rows(self, low: np.ndarray) -> np.ndarray:
         """:meth:`upsample` of each row of ``low`` (n, h*w): (n, H*W)."""
-        return (self._up @ low.T).T * self._cover
+        return (self._up_mean @ low.T).T * self._cover
+
+    def upsample_err(self, low: np.ndarray) -> np.ndarray:
+        """A standard error per sample pixel -> camera pixels, interpolated bilinearly (times
+        the water cover; the likelihood's weights: inference/likelihood.py, refresh_models)."""
+        return (self._up @ low) * self._cover
 
     def share(self, kappa_a, kappa_s, g, *, seed: int = 0,
               single: SingleScattering | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -386,7 +436,7 @@ class FullTransport:
             mean = np.clip(per.mean(axis=0), 0.0, None)
             err = per.std(axis=0, ddof=1) / math.sqrt(n)
             img[..., k] = (self.ms.upsample(mean) * br[k]).reshape(self.shape)
-            var[..., k] = ((self.ms.upsample(err) * br[k]) ** 2).reshape(self.shape)
+            var[..., k] = ((self.ms.upsample_err(err) * br[k]) ** 2).reshape(self.shape)
             if excess:
                 # at the camera's pixels, each batch's deviation interpolated: a camera pixel
                 # between sample pixels mixes their independent errors, and its variance is
