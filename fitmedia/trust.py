@@ -144,7 +144,9 @@ RESTART_SD = 3.0
 #: values by more than this many sd (Laplace plus the term's jackknife, at the end): the
 #: offset that the term's noise gives the values falls with the paths roughly as 1/sqrt(paths)
 #: to 1/paths^(1/3) (docs/inference.md), so up to two thirds of that move may remain, and
-#: more than about one sd of it is an error the intervals do not show
+#: more than about one sd of it is an error the intervals do not show.  With the excess and
+#: the upsampling of stop 30 it fell as paths^-0.7 on one 100 x 75 capture (a sixth of the
+#: move remaining); kept until more captures show the same
 FINAL_MOVE_SD = 1.5
 #: with the full model, an optimum with g of the other sign within this many log-posterior
 #: units leaves the sign of g undetermined: the bound for sampling both modes.  With the
