@@ -104,7 +104,7 @@ def test_refresh_loop_recovers_a_stub_full_transport_capture(rng):
     assert shift < 1.0, (shift, other, full.x)
 
 
-def test_refresh_loop_reaches_a_map_far_from_its_start(rng):
+def test_refresh_loop_reaches_a_map_far_from_its_start(rng, monkeypatch):
     """The trust region grows while the polishes end on its edge (inference/full.py:
     ``TRUST_MAX``): the refresh loop started a factor e^2.2 below the truth's kappa_t (as far as
     dense milk's single-scattering MAP, 89 % low) reaches the stub capture's MAP within 4 sd and
@@ -121,12 +121,8 @@ def test_refresh_loop_reaches_a_map_far_from_its_start(rng):
     assert info.converged, info.moves_sd
     for j in (0, 2):
         assert abs(full.x[j] - truth[j]) < 4 * _sd(full, j), (j, full.x, truth)
-    held = pytest.MonkeyPatch()
-    held.setattr(full_mod, "TRUST_MAX", full_mod.TRUST_STEP)
-    try:
-        _, info_held = refine_map(problem, space, start)
-    finally:
-        held.undo()
+    monkeypatch.setattr(full_mod, "TRUST_MAX", full_mod.TRUST_STEP)
+    _, info_held = refine_map(problem, space, start)
     assert not info_held.converged, info_held.moves_sd
 
 
