@@ -51,6 +51,17 @@ TRUST_STEP = 0.25
 #: this (the MAP is far away, as for dense milk from its single-scattering MAP: 8 steps of
 #: 0.25 reach a factor e^2 in kappa_t); one inside it resets the half-width to TRUST_STEP
 TRUST_MAX = 1.0
+#: a polish (inside its trust region) whose move, in posterior sd, points back against the
+#: previous one (cosine below this) puts the next refresh at the midpoint of its start and
+#: end.  The refreshes are a fixed-point iteration x -> F(x); near the fixed point x*,
+#: F(x) - x* ~ a (x - x*), and a thin medium (wide posterior, the term's curvature over a
+#: move of an sd or more) gave a ~ -0.7: the moves alternate and shrink slowly (measured on a
+#: 16 x 12 Espresso 4.1 ml round of docs/validation.md, R: moves of 1.0 and 0.75 sd at 4096
+#: paths, "did not settle").  From the midpoint the error is (1 + a) / 2 of the last one,
+#: and the next move goes on the same way (a plain refresh), so the error falls by a (1 + a) / 2
+#: every two refreshes: 0.1 for a = -0.7 (plain: 0.5), and the loop converges for -2 < a < 0
+#: (plain: -1 < a < 0); for 0 < a < 1 the moves do not turn back and nothing changes
+REVERSAL_COS = -0.5
 #: ``--model auto`` switches to full transport above this multiple-scattering share of the
 #: glow (sum over the pixels that do not see the bulb); docs/multiple_scattering.md
 AUTO_SHARE = 0.02
@@ -62,7 +73,7 @@ RESTART_REFRESHES = 4
 #: MAP's offset from the term's own noise falls with the paths (docs/inference.md, "The g
 #: offset at the truth"); 1: no such stage
 FINAL_PATHS_FACTOR = 16
-FINAL_REFRESHES = 2
+FINAL_REFRESHES = 3
 #: the jackknife's finite-difference step, in posterior sd of each coordinate
 JACKKNIFE_STEP_SD = 0.1
 #: the jackknife holds logit albedo where its Laplace sd exceeds this: the albedo on its
@@ -83,6 +94,8 @@ class FullFitInfo:
     #: the same moves in units of what the term's realisation explains (_in_term_units)
     moves_term: list[float] = field(default_factory=list)
     converged: bool = False
+    #: refreshes placed at the midpoint of a polish that moved back (``REVERSAL_COS``)
+    midpoints: int = 0
 
 
 def use_full_transport(problem: ChannelProblem, spec, channel: str, *, seed: int) -> None:
@@ -199,29 +212,58 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
     Returns the full-transport MAP (Laplace covariance over the whole bounds) and what the
     refreshes did; ``info.converged`` is False when ``MAX_REFRESH`` refreshes did not settle."""
     info = FullFitInfo()
-    res, step = start, TRUST_STEP
+    res, at, step, last = start, start.x, TRUST_STEP, None
     for _ in range(max_refresh):
-        problem.refresh_models(res.x)
-        problem.adapt(res.x)
-        lo, hi = _trust_region(space, res.x, step)
-        new = find_map(problem.log_posterior, np.clip(res.x, lo, hi), lo, hi, global_evals=0)
-        step = min(2.0 * step, TRUST_MAX) if _on_edge(space, new.x, lo, hi) else TRUST_STEP
-        move = distance_sd(problem, new, res.x, None)
-        jitter = _in_term_units(res.x, new.x, _cov_or_ridge(problem, new),
+        problem.refresh_models(at)
+        problem.adapt(at)
+        lo, hi = _trust_region(space, at, step)
+        new = find_map(problem.log_posterior, np.clip(at, lo, hi), lo, hi, global_evals=0)
+        edge = _on_edge(space, new.x, lo, hi)
+        step = min(2.0 * step, TRUST_MAX) if edge else TRUST_STEP
+        move = distance_sd(problem, new, at, None)
+        jitter = _in_term_units(at, new.x, _cov_or_ridge(problem, new),
                                 term_jackknife(problem, new))
-        log.debug("full transport: refresh %d at %s -> %s, move %.3g sd, %.3g in term units; "
-                  "next trust half-width %.2f", info.refreshes + 1, np.round(res.x, 4),
-                  np.round(new.x, 4), move, jitter, step)
         info.refreshes += 1
         info.moves_sd.append(move)
         info.moves_term.append(jitter)
         res = new
         if move < MOVE_TOL_SD or jitter < 1.0:
             info.converged = True
+            _log_refresh(info, at, new.x, move, jitter, step, False)
             break
+        # a polish that came back against the previous one: the fixed point lies between
+        # its start and its end, so the next refresh is at their midpoint (REVERSAL_COS)
+        d = _move_in_sd(problem, new, at)
+        damped = last is not None and not edge and _cosine(d, last) < REVERSAL_COS
+        _log_refresh(info, at, new.x, move, jitter, step, damped)
+        at, last = (0.5 * (at + new.x) if damped else new.x), d
+        info.midpoints += int(damped)
     final = find_map(problem.log_posterior, res.x, space.lower, space.upper, global_evals=0)
     final.n_evals += start.n_evals
     return final, info
+
+
+def _log_refresh(info: FullFitInfo, at, x, move: float, jitter: float, step: float,
+                 damped: bool) -> None:
+    """One refresh's line in the debug log (``fitmedia -v`` does not show it)."""
+    log.debug("full transport: refresh %d at %s -> %s, move %.3g sd, %.3g in term units; "
+              "next trust half-width %.2f%s", info.refreshes, np.round(at, 4), np.round(x, 4),
+              move, jitter, step, "; moved back: next refresh at the midpoint" if damped else "")
+
+
+def _move_in_sd(problem: ChannelProblem, new: MapResult, at: np.ndarray) -> np.ndarray:
+    """The move from ``at`` to ``new`` in log kappa_t and atanh g, each in units of its sd at
+    ``new`` (``_cov_or_ridge``; unscaled where there is none)."""
+    idx = [0, 2]
+    cov = _cov_or_ridge(problem, new)
+    sd = np.sqrt(np.diag(cov)[idx]) if cov is not None else np.ones(len(idx))
+    return (new.x[idx] - np.asarray(at)[idx]) / np.where(sd > 0, sd, 1.0)
+
+
+def _cosine(a: np.ndarray, b: np.ndarray) -> float:
+    """Cosine of the angle between two moves (1 where either is zero)."""
+    n = float(np.linalg.norm(a) * np.linalg.norm(b))
+    return float(a @ b) / n if n > 0 else 1.0
 
 
 def term_jackknife(problem: ChannelProblem, res: MapResult) -> np.ndarray | None:
