@@ -478,6 +478,7 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                full_moves_sd=info.moves_sd + last.moves_sd,
                full_moves_term=info.moves_term + last.moves_term,
                full_midpoints=info.midpoints + last.midpoints,
+               full_extrapolated=info.extrapolated + last.extrapolated,
                full_converged=info.converged and last.converged, ms_term_cov=term_cov,
                ms_restart_shift_sd=restart_sd,
                ms_restart_values={"kappa_t": float(other.kappa_t), "g": float(other.g)},

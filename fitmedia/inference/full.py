@@ -62,6 +62,16 @@ TRUST_MAX = 1.0
 #: every two refreshes: 0.1 for a = -0.7 (plain: 0.5), and the loop converges for -2 < a < 0
 #: (plain: -1 < a < 0); for 0 < a < 1 the moves do not turn back and nothing changes
 REVERSAL_COS = -0.5
+#: ... and one whose move goes on the same way as the previous one (cosine above this) but
+#: shorter, by a ratio r < 1, puts the next refresh where that geometric series ends: beyond
+#: the polish's end by r / (1 - r) times its move, at most ``EXTRAPOLATE_MAX`` times (r = 3/4).
+#: For 0 < a < 1 the plain loop creeps (measured on Regular Milk 60 ml at 48 x 36, G: atanh g
+#: 0.18, 0.27, 0.38, 0.45, 0.50 in 5 refreshes, truth 0.90, unsettled after 8); from the
+#: series' end the error is that of the estimate of a, and the next moves correct it.  Only
+#: two plain moves in a row are judged (after a midpoint or an extrapolation the ratio of the
+#: moves says nothing of a)
+ALIGN_COS = 0.5
+EXTRAPOLATE_MAX = 3.0
 #: ``--model auto`` switches to full transport above this multiple-scattering share of the
 #: glow (sum over the pixels that do not see the bulb); docs/multiple_scattering.md
 AUTO_SHARE = 0.02
@@ -96,6 +106,8 @@ class FullFitInfo:
     converged: bool = False
     #: refreshes placed at the midpoint of a polish that moved back (``REVERSAL_COS``)
     midpoints: int = 0
+    #: refreshes placed beyond a polish that went on the same way (``ALIGN_COS``)
+    extrapolated: int = 0
 
 
 def use_full_transport(problem: ChannelProblem, spec, channel: str, *, seed: int) -> None:
@@ -229,26 +241,47 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
         res = new
         if move < MOVE_TOL_SD or jitter < 1.0:
             info.converged = True
-            _log_refresh(info, at, new.x, move, jitter, step, False)
+            _log_refresh(info, at, new.x, move, jitter, step, "plain")
             break
-        # a polish that came back against the previous one: the fixed point lies between
-        # its start and its end, so the next refresh is at their midpoint (REVERSAL_COS)
         d = _move_in_sd(problem, new, at)
-        damped = last is not None and not edge and _cosine(d, last) < REVERSAL_COS
-        _log_refresh(info, at, new.x, move, jitter, step, damped)
-        at, last = (0.5 * (at + new.x) if damped else new.x), d
-        info.midpoints += int(damped)
+        nxt, how = _next_refresh(space, at, new.x, d, last, edge)
+        _log_refresh(info, at, new.x, move, jitter, step, how)
+        # the next pair of moves judges from a plain refresh only (_next_refresh)
+        at, last = nxt, (d if how == "plain" else None)
+        info.midpoints += int(how == "midpoint")
+        info.extrapolated += int(how == "extrapolated")
     final = find_map(problem.log_posterior, res.x, space.lower, space.upper, global_evals=0)
     final.n_evals += start.n_evals
     return final, info
 
 
+def _next_refresh(space: ParameterSpace, at: np.ndarray, x: np.ndarray, d: np.ndarray,
+                  last: np.ndarray | None, edge: bool) -> tuple[np.ndarray, str]:
+    """Where the next refresh goes after a polish from ``at`` to ``x`` (move ``d`` in sd; the
+    previous plain move ``last``, or None): ``x`` itself (``"plain"``); the midpoint of
+    ``at`` and ``x`` where the move turned back (``REVERSAL_COS``, ``"midpoint"``); beyond ``x``
+    where it went on the same way, shorter by a ratio r (``ALIGN_COS``, ``"extrapolated"``:
+    the fixed point of x -> x* + r (x - x*), capped at ``EXTRAPOLATE_MAX`` times the move and
+    the space's bounds).  A polish that ended on its trust region's edge is plain."""
+    if last is None or edge:
+        return x, "plain"
+    cos = _cosine(d, last)
+    if cos < REVERSAL_COS:
+        return 0.5 * (at + x), "midpoint"
+    n_last = float(np.linalg.norm(last))
+    r = float(np.linalg.norm(d)) / n_last if n_last > 0 else 1.0
+    if cos > ALIGN_COS and r < 1.0:
+        k = min(r / (1.0 - r), EXTRAPOLATE_MAX)
+        return np.clip(x + k * (x - at), space.lower, space.upper), "extrapolated"
+    return x, "plain"
+
+
 def _log_refresh(info: FullFitInfo, at, x, move: float, jitter: float, step: float,
-                 damped: bool) -> None:
+                 how: str) -> None:
     """One refresh's line in the debug log (``fitmedia -v`` does not show it)."""
     log.debug("full transport: refresh %d at %s -> %s, move %.3g sd, %.3g in term units; "
               "next trust half-width %.2f%s", info.refreshes, np.round(at, 4), np.round(x, 4),
-              move, jitter, step, "; moved back: next refresh at the midpoint" if damped else "")
+              move, jitter, step, "" if how == "plain" else f"; next refresh {how}")
 
 
 def _move_in_sd(problem: ChannelProblem, new: MapResult, at: np.ndarray) -> np.ndarray:
