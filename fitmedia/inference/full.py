@@ -246,8 +246,9 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
         d = _move_in_sd(problem, new, at)
         nxt, how = _next_refresh(space, at, new.x, d, last, edge)
         _log_refresh(info, at, new.x, move, jitter, step, how)
-        # the next pair of moves judges from a plain refresh only (_next_refresh)
-        at, last = nxt, (d if how == "plain" else None)
+        # the next pair of moves judges from a plain refresh inside its region only
+        # (_next_refresh; a move to the region's edge says nothing of a either)
+        at, last = nxt, (d if how == "plain" and not edge else None)
         info.midpoints += int(how == "midpoint")
         info.extrapolated += int(how == "extrapolated")
     final = find_map(problem.log_posterior, res.x, space.lower, space.upper, global_evals=0)
