@@ -246,9 +246,8 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
         d = _move_in_sd(problem, new, at)
         nxt, how = _next_refresh(space, at, new.x, d, last, edge)
         _log_refresh(info, at, new.x, move, jitter, step, how)
-        # the next pair of moves judges from a plain refresh inside its region only
-        # (_next_refresh; a move to the region's edge says nothing of a either)
-        at, last = nxt, (d if how == "plain" and not edge else None)
+        # the next pair of moves is judged from a plain refresh only (_next_refresh)
+        at, last = nxt, ((d, edge) if how == "plain" else None)
         info.midpoints += int(how == "midpoint")
         info.extrapolated += int(how == "extrapolated")
     final = find_map(problem.log_posterior, res.x, space.lower, space.upper, global_evals=0)
@@ -257,21 +256,25 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
 
 
 def _next_refresh(space: ParameterSpace, at: np.ndarray, x: np.ndarray, d: np.ndarray,
-                  last: np.ndarray | None, edge: bool) -> tuple[np.ndarray, str]:
-    """Where the next refresh goes after a polish from ``at`` to ``x`` (move ``d`` in sd; the
-    previous plain move ``last``, or None): ``x`` itself (``"plain"``); the midpoint of
-    ``at`` and ``x`` where the move turned back (``REVERSAL_COS``, ``"midpoint"``); beyond ``x``
-    where it went on the same way, shorter by a ratio r (``ALIGN_COS``, ``"extrapolated"``:
-    the fixed point of x -> x* + r (x - x*), capped at ``EXTRAPOLATE_MAX`` times the move and
-    the space's bounds).  A polish that ended on its trust region's edge is plain."""
+                  last: tuple[np.ndarray, bool] | None, edge: bool) -> tuple[np.ndarray, str]:
+    """Where the next refresh goes after a polish from ``at`` to ``x`` (move ``d`` in sd,
+    ``edge``: it ended on its trust region's edge; ``last``: the previous move and its edge
+    flag if that refresh was plain, else None): ``x`` itself (``"plain"``); the midpoint of
+    ``at`` and ``x`` where the move turned back (``REVERSAL_COS``, ``"midpoint"``; the fixed
+    point lies between, wherever the previous move ended); beyond ``x`` where it went on the
+    same way, shorter by a ratio r (``ALIGN_COS``, ``"extrapolated"``: the fixed point of
+    x -> x* + r (x - x*), capped at ``EXTRAPOLATE_MAX`` times the move and the space's
+    bounds), only where neither move ended on an edge (a move cut short says nothing of r).
+    A polish that ended on its edge is plain."""
     if last is None or edge:
         return x, "plain"
-    cos = _cosine(d, last)
+    prev, prev_edge = last
+    cos = _cosine(d, prev)
     if cos < REVERSAL_COS:
         return 0.5 * (at + x), "midpoint"
-    n_last = float(np.linalg.norm(last))
-    r = float(np.linalg.norm(d)) / n_last if n_last > 0 else 1.0
-    if cos > ALIGN_COS and r < 1.0:
+    n_prev = float(np.linalg.norm(prev))
+    r = float(np.linalg.norm(d)) / n_prev if n_prev > 0 else 1.0
+    if cos > ALIGN_COS and r < 1.0 and not prev_edge:
         k = min(r / (1.0 - r), EXTRAPOLATE_MAX)
         return np.clip(x + k * (x - at), space.lower, space.upper), "extrapolated"
     return x, "plain"
