@@ -150,28 +150,37 @@ class FrozenStub(StrongStub):
         return super().ms_part(*self.at)
 
 
+def _loop_with_and_without(rng, monkeypatch, data_stub, model_stub, constant: str, off: float,
+                           counter: str) -> None:
+    """A capture rendered by ``data_stub`` (kappa_a 0.008: albedo 0.6), fitted from off the
+    truth with ``model_stub``: the refresh loop settles, using ``counter`` (``midpoints`` or
+    ``extrapolated``) at least once, within 3 sd of the truth; with ``constant`` of
+    inference/full.py set to ``off`` (the rule switched off) it does not settle."""
+    import fitmedia.inference.full as full_mod
+
+    single, problem, space, truth, _ = _stub_problem(rng, 0.008, stub=data_stub)
+    problem.obs[0].model = model_stub(single)
+    start = MapResult(truth + np.array([-0.2, 0.0, -0.15]), None, 0, None)
+    full, info = refine_map(problem, space, start)
+    assert info.converged and getattr(info, counter) >= 1, (info.moves_sd, info)
+    for j in range(3):
+        assert abs(full.x[j] - truth[j]) < 3 * _sd(full, j), (j, full.x, truth)
+    monkeypatch.setattr(full_mod, constant, off)
+    _, plain = refine_map(problem, space, start)
+    assert not plain.converged and getattr(plain, counter) == 0, plain.moves_sd
+
+
 def test_refresh_loop_settles_where_its_moves_turn_back(rng, monkeypatch):
     """A polish whose move turns back against the previous one puts the next refresh at the
     midpoint of its start and end (inference/full.py: ``REVERSAL_COS``).  A capture rendered by
     ``StrongStub``, fitted with its frozen term (``FrozenStub``, an alternating fixed-point
     iteration): the loop settles within ``MAX_REFRESH`` refreshes, with midpoints, at values
     within 3 sd of the truth.  Control: without midpoints (``REVERSAL_COS`` below -1) the
-    same loop does not settle.  (Measured on seeds 1, 2, 12345: 7 refreshes with 3 midpoints,
-    within 0.8 sd; without, the moves grow to about 10 sd.)"""
-    import fitmedia.inference.full as full_mod
-
+    same loop does not settle (its moves grow).  Compared with the stub capture's truth."""
     # albedo 0.6: a kappa_a that the images pin (near albedo 1 the albedo wanders on its
     # plateau, and the frozen term, proportional to the albedo, with it)
-    single, problem, space, truth, _ = _stub_problem(rng, 0.008, stub=StrongStub)
-    problem.obs[0].model = FrozenStub(single)
-    start = MapResult(truth + np.array([-0.2, 0.0, -0.15]), None, 0, None)
-    full, info = refine_map(problem, space, start)
-    assert info.converged and info.midpoints >= 1, (info.moves_sd, info.midpoints)
-    for j in range(3):
-        assert abs(full.x[j] - truth[j]) < 3 * _sd(full, j), (j, full.x, truth)
-    monkeypatch.setattr(full_mod, "REVERSAL_COS", -2.0)
-    _, plain = refine_map(problem, space, start)
-    assert not plain.converged and plain.midpoints == 0, plain.moves_sd
+    _loop_with_and_without(rng, monkeypatch, StrongStub, FrozenStub, "REVERSAL_COS", -2.0,
+                           "midpoints")
 
 
 class SteepStub(StubFullTransport):
@@ -198,21 +207,9 @@ def test_refresh_loop_settles_where_its_moves_creep(rng, monkeypatch):
     ``ALIGN_COS``, ``EXTRAPOLATE_MAX``).  A stub capture fitted with a local model six times
     too steep (``SteepStub``, a creeping fixed-point iteration): the loop settles within
     ``MAX_REFRESH`` refreshes, with extrapolations, at values within 3 sd of the truth.
-    Control: without them (``ALIGN_COS`` above 1) it does not settle.  (Measured on seeds 1,
-    2, 12345: 7 refreshes with 3 extrapolations, within 1.4 sd; without, the 8th move is
-    still 0.26-0.36 sd.)"""
-    import fitmedia.inference.full as full_mod
-
-    single, problem, space, truth, _ = _stub_problem(rng, 0.008)
-    problem.obs[0].model = SteepStub(single)
-    start = MapResult(truth + np.array([-0.2, 0.0, -0.15]), None, 0, None)
-    full, info = refine_map(problem, space, start)
-    assert info.converged and info.extrapolated >= 1, (info.moves_sd, info.extrapolated)
-    for j in range(3):
-        assert abs(full.x[j] - truth[j]) < 3 * _sd(full, j), (j, full.x, truth)
-    monkeypatch.setattr(full_mod, "ALIGN_COS", 2.0)
-    _, plain = refine_map(problem, space, start)
-    assert not plain.converged and plain.extrapolated == 0, plain.moves_sd
+    Control: without them (``ALIGN_COS`` above 1) it does not settle in ``MAX_REFRESH``."""
+    _loop_with_and_without(rng, monkeypatch, StubFullTransport, SteepStub, "ALIGN_COS", 2.0,
+                           "extrapolated")
 
 
 def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understated():
