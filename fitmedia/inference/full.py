@@ -233,8 +233,8 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
         edge = _on_edge(space, new.x, lo, hi)
         step = min(2.0 * step, TRUST_MAX) if edge else TRUST_STEP
         move = distance_sd(problem, new, at, None)
-        jitter = _in_term_units(at, new.x, _cov_or_ridge(problem, new),
-                                term_jackknife(problem, new))
+        cov = _cov_or_ridge(problem, new)  # a Laplace of its own where new.cov is None
+        jitter = _in_term_units(at, new.x, cov, term_jackknife(problem, new))
         info.refreshes += 1
         info.moves_sd.append(move)
         info.moves_term.append(jitter)
@@ -243,7 +243,7 @@ def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult,
             info.converged = True
             _log_refresh(info, at, new.x, move, jitter, step, "plain")
             break
-        d = _move_in_sd(problem, new, at)
+        d = _move_in_sd(new.x, at, cov)
         nxt, how = _next_refresh(space, at, new.x, d, last, edge)
         _log_refresh(info, at, new.x, move, jitter, step, how)
         # the next pair of moves is judged from a plain refresh only (_next_refresh)
@@ -288,13 +288,12 @@ def _log_refresh(info: FullFitInfo, at, x, move: float, jitter: float, step: flo
               move, jitter, step, "" if how == "plain" else f"; next refresh {how}")
 
 
-def _move_in_sd(problem: ChannelProblem, new: MapResult, at: np.ndarray) -> np.ndarray:
-    """The move from ``at`` to ``new`` in log kappa_t and atanh g, each in units of its sd at
-    ``new`` (``_cov_or_ridge``; unscaled where there is none)."""
+def _move_in_sd(x: np.ndarray, at: np.ndarray, cov: np.ndarray | None) -> np.ndarray:
+    """The move from ``at`` to ``x`` in log kappa_t and atanh g, each in units of its sd in
+    ``cov`` (the new point's ``_cov_or_ridge``; unscaled where there is none)."""
     idx = [0, 2]
-    cov = _cov_or_ridge(problem, new)
     sd = np.sqrt(np.diag(cov)[idx]) if cov is not None else np.ones(len(idx))
-    return (new.x[idx] - np.asarray(at)[idx]) / np.where(sd > 0, sd, 1.0)
+    return (np.asarray(x)[idx] - np.asarray(at)[idx]) / np.where(sd > 0, sd, 1.0)
 
 
 def _cosine(a: np.ndarray, b: np.ndarray) -> float:
