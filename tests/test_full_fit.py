@@ -135,19 +135,31 @@ class StrongStub(StubFullTransport):
     factor = 1.2
 
 
-class FrozenStub(StrongStub):
-    """A local model without derivatives: the extra glow frozen at the refresh point (as
-    ``STUDY_VAR=noderiv`` in docs/studies/ms_shared_error.py).  The polish then puts all of
-    the mismatch into the single scattering and overshoots: the plain refresh loop is
-    x -> x* + a (x - x*) with a about minus the term's part of the glow's sensitivity, here
-    beyond -1, so its moves alternate and grow."""
+class LocalStub(StubFullTransport):
+    """A local model of the stub's extra glow: its value at the refresh point plus ``slope``
+    times its change from there (1: exact)."""
+
+    slope = 1.0
 
     def refresh(self, kappa_a, kappa_s, g, brightness=None) -> None:
         super().refresh(kappa_a, kappa_s, g, brightness)
         self.at = (kappa_a, kappa_s, g, brightness)
 
     def ms_part(self, kappa_a, kappa_s, g, brightness):
-        return super().ms_part(*self.at)
+        base = super().ms_part(*self.at)[0]
+        term = base + self.slope * (super().ms_part(kappa_a, kappa_s, g, brightness)[0] - base)
+        return term, np.zeros_like(term)
+
+
+class FrozenStub(LocalStub):
+    """A local model without derivatives (slope 0) of ``StrongStub``'s extra glow: frozen at
+    the refresh point (as ``STUDY_VAR=noderiv`` in docs/studies/ms_shared_error.py).  The
+    polish then puts all of the mismatch into the single scattering and overshoots: the plain
+    refresh loop is x -> x* + a (x - x*) with a about minus the term's part of the glow's
+    sensitivity, here beyond -1, so its moves alternate and grow."""
+
+    factor = StrongStub.factor
+    slope = 0.0
 
 
 def _loop_with_and_without(rng, monkeypatch, data_stub, model_stub, constant: str, off: float,
@@ -183,22 +195,13 @@ def test_refresh_loop_settles_where_its_moves_turn_back(rng, monkeypatch):
                            "midpoints")
 
 
-class SteepStub(StubFullTransport):
-    """A local model six times too steep: the stub's extra glow at the refresh point plus 6
-    times its change from there.  Its polishes stop short (the term seems to absorb more of
-    the mismatch than it does), so the plain refresh loop creeps towards its fixed point:
-    x -> x* + a (x - x*) with 0 < a < 1 (measured: moves falling by about 0.65 per refresh)."""
+class SteepStub(LocalStub):
+    """A local model six times too steep.  Its polishes stop short (the term seems to absorb
+    more of the mismatch than it does), so the plain refresh loop creeps towards its fixed
+    point: x -> x* + a (x - x*) with 0 < a < 1 (measured: moves falling by about 0.65 per
+    refresh)."""
 
     slope = 6.0
-
-    def refresh(self, kappa_a, kappa_s, g, brightness=None) -> None:
-        super().refresh(kappa_a, kappa_s, g, brightness)
-        self.at = (kappa_a, kappa_s, g, brightness)
-
-    def ms_part(self, kappa_a, kappa_s, g, brightness):
-        base = super().ms_part(*self.at)[0]
-        term = base + self.slope * (super().ms_part(kappa_a, kappa_s, g, brightness)[0] - base)
-        return term, np.zeros_like(term)
 
 
 def test_refresh_loop_settles_where_its_moves_creep(rng, monkeypatch):
