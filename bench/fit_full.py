@@ -30,6 +30,9 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
+# the fits run this checkout's code (``python -m fitmedia.cli`` in ROOT); read their
+# results with the same code, whichever fitmedia is installed
+sys.path.insert(0, str(ROOT))
 TARGET_S = 15 * 60
 
 
