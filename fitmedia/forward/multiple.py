@@ -104,6 +104,27 @@ def _upsampler(low: tuple[int, int], cam: Camera, b: int) -> sparse.csr_matrix:
                              shape=(cam.height * cam.width, h * w))
 
 
+def _order_major(loc: dict) -> np.ndarray:
+    """A local model's per-batch images and finite differences (each (batches, K, h*w)) as
+    one C-contiguous array (K, 3, batches, h*w), built once and kept in ``loc``: the sum over
+    the orders is then one matrix-vector product over contiguous memory, where ``tensordot``
+    over the middle axis copied every array on every call (65 % of a sampler's time at
+    100 x 75 px, bin 1; bench/ms_local_render.py)."""
+    if "order_major" not in loc:
+        loc["order_major"] = np.ascontiguousarray(
+            np.stack([loc[name] for name in ("batches", "d_kt", "d_g")]).transpose(2, 0, 1, 3))
+    return loc["order_major"]
+
+
+def _with_order_major(loc: dict) -> dict:
+    """``loc`` with its order-major array built and its three arrays replaced by views of it
+    (one copy of the local model in memory, not two)."""
+    stack = _order_major(loc)
+    for i, name in enumerate(("batches", "d_kt", "d_g")):
+        loc[name] = stack[:, i].transpose(1, 0, 2)
+    return loc
+
+
 class MultipleScattering:
     """Monte Carlo estimate of what ``SingleScattering`` leaves out (see module docstring).
 
@@ -382,9 +403,9 @@ class FullTransport:
             base = runs[0]
             # per batch: the finite differences of each batch (the same paths), so that a
             # batch's derivatives leave with it (leave_out) and their noise is in the variance
-            local.append({"kt": kt, "eta": eta, "batches": base,
-                          "d_kt": (runs[1] - base) / self.step,
-                          "d_g": (runs[2] - base) / self.step})
+            local.append(_with_order_major({"kt": kt, "eta": eta, "batches": base,
+                                            "d_kt": (runs[1] - base) / self.step,
+                                            "d_g": (runs[2] - base) / self.step}))
         self._local = local
         # the term's Monte Carlo variance at the refresh point, unit brightness
         # (render_with_variance: what it changes by away from there; a spot has none)
@@ -424,10 +445,10 @@ class FullTransport:
                 continue
             kt = ka[k] + ks[k]
             steps = (1.0, math.log(kt / loc["kt"]), math.atanh(gg[k]) - loc["eta"])
-            pw = (ks[k] / kt) ** np.arange(loc["batches"].shape[1])
+            stack = _order_major(loc)
+            pw = (ks[k] / kt) ** np.arange(stack.shape[0])
             pw[0] = 0.0
-            parts = [np.tensordot(loc[name], pw, axes=([1], [0]))
-                     for name in ("batches", "d_kt", "d_g")]
+            parts = list((pw @ stack.reshape(stack.shape[0], -1)).reshape(stack.shape[1:]))
             if self.leave_out is not None:
                 parts = [np.delete(x, self.leave_out, axis=0) for x in parts]
             parts = [self.ms.smoothed(x) for x in parts]

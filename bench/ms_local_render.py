@@ -1,0 +1,78 @@
+"""What the local model's order-major layout (fitmedia.forward.multiple._order_major) does to
+the cost of one full-transport render in the sampler.
+
+A FullTransport model of the canonical bulb binned 2x (100 x 75 px, the term traced at the
+fit's bin, ``trace_bin``: 2, 256 paths per sample pixel), Lowfat Milk 16 ml in 23 l, channel
+G, refreshed once at the truth.  Then ``REPEATS`` calls of ``render_with_variance`` (what the
+likelihood calls at every posterior evaluation) at an albedo a little off the refresh point,
+with the order-major array (now) and with the sum over the orders done as before
+(``np.tensordot`` over the middle axis of each (batches, K, h*w) array, the reference); the
+two images are checked to agree.  Printed: seconds per call of each, their ratio, and the
+number of orders K, all measured in this run.
+
+Usage:  python bench/ms_local_render.py [repeats]     (default 20)
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fitmedia.forward import multiple  # noqa: E402
+from fitmedia.forward.multiple import FullTransport  # noqa: E402
+from fitmedia.inference.full import trace_bin  # noqa: E402
+from fitmedia.medium import medium_by_name  # noqa: E402
+from fitmedia.spec import parse_spec  # noqa: E402
+
+
+def tensordot_major(loc: dict) -> np.ndarray:
+    """The reference: the same (K, 3, batches, h*w) array, made by copying on every call as
+    ``np.tensordot`` over the orders did."""
+    return np.stack([loc[n] for n in ("batches", "d_kt", "d_g")]).transpose(2, 0, 1, 3).copy()
+
+
+def timed(ft, args, repeats: int) -> tuple[float, np.ndarray]:
+    img = ft.render_with_variance(*args)[0]
+    t = time.perf_counter()
+    for _ in range(repeats):
+        ft.render_with_variance(*args)
+    return (time.perf_counter() - t) / repeats, img
+
+
+def main() -> None:
+    repeats = int(sys.argv[1]) if len(sys.argv) > 1 else 20
+    raw = yaml.safe_load((ROOT / "capture_specs" / "bulb.yaml").read_text())
+    cam = raw["camera"]
+    cam.update(size=[100, 75], fx=cam["fx"] / 2, fy=cam["fy"] / 2, cx=cam["cx"] / 2,
+               cy=cam["cy"] / 2)
+    raw.pop("images", None)
+    spec = parse_spec(raw, require_images=False)
+    m = medium_by_name("Lowfat Milk").scaled(16 / 23000)
+    ka, ks, g = m.kappa_a[1] + spec.water_kappa_a[1], m.kappa_s[1], m.g[1]
+    ft = FullTransport(spec, None, channels=("G",), bin=trace_bin(spec.camera), seed=1)
+    t = time.perf_counter()
+    ft.refresh([ka], [ks], [g])
+    print(f"refresh (3 traces): {time.perf_counter() - t:.1f} s; orders K = "
+          f"{ft._local[0]['batches'].shape[1]}, sample pixels {ft._local[0]['batches'].shape[2]}")
+    args = ([ka * 1.05], [ks * 0.99], [g], [1.0])
+    now, img = timed(ft, args, repeats)
+    keep = multiple._order_major
+    multiple._order_major = tensordot_major
+    try:
+        ref, img_ref = timed(ft, args, repeats)
+    finally:
+        multiple._order_major = keep
+    np.testing.assert_allclose(img, img_ref, rtol=1e-12, atol=0)
+    print(f"render_with_variance: {now * 1e3:.1f} ms per call order-major, {ref * 1e3:.1f} ms "
+          f"copying per call (reference); ratio {now / ref:.2f}")
+
+
+if __name__ == "__main__":
+    main()
