@@ -3,18 +3,21 @@ the cost of one full-transport render in the sampler.
 
 A FullTransport model of the canonical bulb binned 2x (100 x 75 px, the term traced at the
 fit's bin, ``trace_bin``: 2, 256 paths per sample pixel), Lowfat Milk 16 ml in 23 l, channel
-G, refreshed once at the truth.  Then ``REPEATS`` calls of ``render_with_variance`` (what the
+G, refreshed once at the truth and its analytic part's quadrature frozen there (as a fit's
+``ChannelProblem.adapt`` does).  Then ``REPEATS`` calls of ``render_with_variance`` (what the
 likelihood calls at every posterior evaluation) at an albedo a little off the refresh point,
 with the order-major array (now) and with the sum over the orders done as before
 (``np.tensordot`` over the middle axis of each (batches, K, h*w) array, the reference); the
 two images are checked to agree.  Printed: seconds per call of each, their ratio, and the
-number of orders K, all measured in this run.
+number of orders K, all measured in this run.  ``BIN`` (environment, default the fit's
+``trace_bin``) traces at another bin.
 
 Usage:  python bench/ms_local_render.py [repeats]     (default 20)
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -56,9 +59,11 @@ def main() -> None:
     spec = parse_spec(raw, require_images=False)
     m = medium_by_name("Lowfat Milk").scaled(16 / 23000)
     ka, ks, g = m.kappa_a[1] + spec.water_kappa_a[1], m.kappa_s[1], m.g[1]
-    ft = FullTransport(spec, None, channels=("G",), bin=trace_bin(spec.camera), seed=1)
+    ft = FullTransport(spec, None, channels=("G",), seed=1,
+                       bin=int(os.environ.get("BIN", 0)) or trace_bin(spec.camera))
     t = time.perf_counter()
     ft.refresh([ka], [ks], [g])
+    ft.single.freeze_nodes([ka + ks], [g])  # as a fit does (ChannelProblem.adapt)
     print(f"refresh (3 traces): {time.perf_counter() - t:.1f} s; orders K = "
           f"{ft._local[0]['batches'].shape[1]}, sample pixels {ft._local[0]['batches'].shape[2]}")
     args = ([ka * 1.05], [ks * 0.99], [g], [1.0])
