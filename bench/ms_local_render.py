@@ -38,7 +38,7 @@ from fitmedia.spec import parse_spec  # noqa: E402
 def tensordot_major(loc: dict) -> np.ndarray:
     """The reference: the same (K, 3, batches, h*w) array, made by copying on every call as
     ``np.tensordot`` over the orders did."""
-    return np.stack([loc[n] for n in ("batches", "d_kt", "d_g")]).transpose(2, 0, 1, 3).copy()
+    return np.stack([loc[n] for n in multiple.LOCAL_PARTS]).transpose(2, 0, 1, 3).copy()
 
 
 def timed(ft, args, repeats: int) -> tuple[float, np.ndarray]:

@@ -104,23 +104,31 @@ def _upsampler(low: tuple[int, int], cam: Camera, b: int) -> sparse.csr_matrix:
                              shape=(cam.height * cam.width, h * w))
 
 
+#: a local model's per-order arrays, each (batches, K, h*w): the images at the refresh point
+#: and their finite differences in log kappa_t and atanh g
+LOCAL_PARTS = ("batches", "d_kt", "d_g")
+
+
 def _order_major(loc: dict) -> np.ndarray:
-    """A local model's per-batch images and finite differences (each (batches, K, h*w)) as
-    one C-contiguous array (K, 3, batches, h*w), built once and kept in ``loc``: the sum over
-    the orders is then one matrix-vector product over contiguous memory, where ``tensordot``
-    over the middle axis copied every array on every call (65 % of a sampler's time at
-    100 x 75 px, bin 1; bench/ms_local_render.py)."""
+    """A local model's ``LOCAL_PARTS`` as one C-contiguous array (K, 3, batches, h*w), built
+    once (filled in place: one copy of the arrays, not two at a time) and kept in ``loc``: the
+    sum over the orders is then one matrix-vector product over contiguous memory, where
+    ``tensordot`` over the middle axis copied every array on every call (65 % of a sampler's
+    time at 100 x 75 px, bin 1; bench/ms_local_render.py)."""
     if "order_major" not in loc:
-        loc["order_major"] = np.ascontiguousarray(
-            np.stack([loc[name] for name in ("batches", "d_kt", "d_g")]).transpose(2, 0, 1, 3))
+        b, k, p = loc[LOCAL_PARTS[0]].shape
+        out = np.empty((k, len(LOCAL_PARTS), b, p))
+        for i, name in enumerate(LOCAL_PARTS):
+            out[:, i] = loc[name].transpose(1, 0, 2)
+        loc["order_major"] = out
     return loc["order_major"]
 
 
 def _with_order_major(loc: dict) -> dict:
-    """``loc`` with its order-major array built and its three arrays replaced by views of it
+    """``loc`` with its order-major array built and its ``LOCAL_PARTS`` replaced by views of it
     (one copy of the local model in memory, not two)."""
     stack = _order_major(loc)
-    for i, name in enumerate(("batches", "d_kt", "d_g")):
+    for i, name in enumerate(LOCAL_PARTS):
         loc[name] = stack[:, i].transpose(1, 0, 2)
     return loc
 
