@@ -61,6 +61,13 @@ def values(x: np.ndarray) -> np.ndarray:
     return np.array([kt, kt / (1.0 + np.exp(-x[1])), x[2]])
 
 
+def error(x: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Relative errors of kappa_t and kappa_s, absolute of atanh g, of ``x`` against ``truth``
+    (``values`` of the true parameters)."""
+    v = values(x)
+    return np.r_[v[:2] / truth[:2] - 1.0, v[2] - truth[2]]
+
+
 def main() -> None:
     case, liquid, ml, seed, ch, n = (Path(sys.argv[1]), sys.argv[2], float(sys.argv[3]),
                                      int(sys.argv[4]), sys.argv[5], int(sys.argv[6]))
@@ -75,16 +82,15 @@ def main() -> None:
     use_full_transport(problem, spec, ch, seed=1)
     problem.refresh_models(x)
     problem.adapt(x)
-    o, (gain, read_var) = problem.obs[0], spec.noise
+    o, camera = problem.obs[0], CameraNoise(*spec.noise)  # the synth's noise
     clean, truth = o.values.copy(), values(x)
     rng = np.random.default_rng([seed, n])
     rel = []
     for i in range(n):
-        o.values = (rng.poisson(np.clip(clean, 0, None) / gain) * gain
-                    + rng.normal(0.0, np.sqrt(read_var), clean.shape))
+        o.values = camera.apply(clean, rng)
         r = find_map(problem.log_posterior, x, space.lower, space.upper, global_evals=0,
                      laplace=False)
-        rel.append(values(r.x) / np.r_[truth[:2], 1.0] - np.r_[1.0, 1.0, 0.0] - np.r_[0, 0, truth[2]])
+        rel.append(error(r.x, truth))
         print(f"realisation {i}: kappa_t {100 * rel[-1][0]:+.2f} %, kappa_s "
               f"{100 * rel[-1][1]:+.2f} %, atanh g {rel[-1][2]:+.4f}", flush=True)
     rel = np.array(rel)
@@ -92,7 +98,7 @@ def main() -> None:
     img = tifffile.imread(glob.glob(str(case / "cap" / "images" / "medium_*.tiff"))[0])
     o.values = img.astype(float)[..., ci].ravel()[o.flat_idx]
     own = find_map(problem.log_posterior, x, space.lower, space.upper, global_evals=0)
-    d = values(own.x) / np.r_[truth[:2], 1.0] - np.r_[1.0, 1.0, 0.0] - np.r_[0, 0, truth[2]]
+    d = error(own.x, truth)
     sd = rel.std(axis=0, ddof=1)
     print(f"{n} realisations, MAP minus truth: mean kappa_t {100 * rel[:, 0].mean():+.2f} %, "
           f"kappa_s {100 * rel[:, 1].mean():+.2f} %, atanh g {rel[:, 2].mean():+.4f}; sd "
