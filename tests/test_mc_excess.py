@@ -24,7 +24,7 @@ from fitmedia.inference.optimize import find_map
 from fitmedia.inference.params import ChannelParams, ParameterSpace
 
 
-@pytest.mark.parametrize("bin", [1, 2])
+@pytest.mark.parametrize("bin", [1, 2, 4])
 def test_excess_is_the_terms_variance_and_its_covariance_with_each_step(rng, bin):
     """``ms_part(excess=True)`` against numpy: at a point (dk, dg) from the refresh point, the
     variance of the mean of the batches' term plus twice its covariance with each finite
