@@ -12,7 +12,7 @@ demo: install
 # two pytest workers: CI has 2 cores, and most tests use one; the statistical calibration
 # runs (the round-trip grid, ~10 min) are left to test-calibration (docs/testing.md)
 test: install
-	$(PY) -m pytest -q -n 2 --dist worksteal -m "not calibration"
+	$(PY) -m pytest -q -n 2 --dist worksteal -m "not calibration" --durations=15
 
 test-calibration: install
 	$(PY) -m pytest -q -n 2 --dist worksteal -m calibration
