@@ -26,6 +26,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import yaml
@@ -84,21 +85,13 @@ def main() -> None:
     args = ([ka * 1.05], [ks * 0.99], [g], [1.0])
     print(f"{a.size[0]} x {a.size[1]} px, bin {ft.ms.bin}")
     now, (img, exc) = timed(ft, args, repeats)
-    keep = multiple._order_major
-    multiple._order_major = tensordot_major
-    try:
+    with mock.patch.object(multiple, "_order_major", tensordot_major):
         ref, (img_ref, _) = timed(ft, args, repeats)
-    finally:
-        multiple._order_major = keep
     np.testing.assert_allclose(img, img_ref, rtol=1e-12, atol=0)
     print(f"render_with_variance: {now * 1e3:.1f} ms per call order-major, {ref * 1e3:.1f} ms "
           f"copying per call (reference); ratio {now / ref:.2f}")
-    keep = MultipleScattering.upsampled_products
-    MultipleScattering.upsampled_products = formed_products
-    try:
+    with mock.patch.object(MultipleScattering, "upsampled_products", formed_products):
         ref2, (_, exc_ref) = timed(ft, args, repeats)
-    finally:
-        MultipleScattering.upsampled_products = keep
     np.testing.assert_allclose(exc, exc_ref, rtol=1e-9, atol=1e-12 * np.abs(exc_ref).max())
     print(f"render_with_variance: {now * 1e3:.1f} ms per call with the excess's pair products, "
           f"{ref2 * 1e3:.1f} ms with the images formed (reference); ratio {now / ref2:.2f}")
