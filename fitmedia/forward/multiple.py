@@ -103,9 +103,10 @@ def _pair_products(up: sparse.csr_matrix) -> tuple[sparse.csr_matrix, np.ndarray
     up = up.tocsr(copy=True)
     up.eliminate_zeros()  # bilinear weights of 0 (all but one at bin 1) pair nothing
     r = np.diff(up.indptr)
+    most = int(r.max(initial=0))
     rows, ii, jj, vals = [], [], [], []
-    for a in range(int(r.max(initial=0))):
-        for b in range(int(r.max(initial=0))):
+    for a in range(most):
+        for b in range(most):
             sel = np.flatnonzero((r > a) & (r > b))
             pa, pb = up.indptr[sel] + a, up.indptr[sel] + b
             rows.append(sel)
@@ -307,8 +308,12 @@ class MultipleScattering:
     def upsample(self, low: np.ndarray) -> np.ndarray:
         """Sample-pixel values (per unit water area) -> camera pixels (times the water cover):
         bilinear interpolation sharpened by ``BACKPROJECT`` steps of back-projection."""
-        up = self._up_mean @ low if self._sharpen is None else self._up_base @ (self._sharpen @ low)
-        return up * self._cover
+        return (self._up_base @ self._sharpened_low(low)) * self._cover
+
+    def _sharpened_low(self, low: np.ndarray) -> np.ndarray:
+        """``low`` (sample pixels first) after the back-projection's sample-pixel operator
+        (``_sharpening``); unchanged at bin 1, which has none."""
+        return low if self._sharpen is None else self._sharpen @ low
 
     def upsample_rows(self, low: np.ndarray) -> np.ndarray:
         """:meth:`upsample` of each row of ``low`` (n, h*w): (n, H*W)."""
@@ -325,8 +330,7 @@ class MultipleScattering:
         if self._pairs is None:
             self._pairs = _pair_products(self._up_base)
         w, i, j = self._pairs
-        y, z = (a.T, b.T) if self._sharpen is None else \
-            (self._sharpen @ a.T, self._sharpen @ b.T)  # (h*w, n)
+        y, z = self._sharpened_low(a.T), self._sharpened_low(b.T)  # (h*w, n)
         return (w @ np.einsum("pn,pn->p", y[i], z[j])) * self._cover ** 2
 
     def upsample_err(self, low: np.ndarray) -> np.ndarray:
