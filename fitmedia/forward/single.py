@@ -79,6 +79,8 @@ HALO_SUB = 4
 SPOT_APEX_FOOTPRINTS = 8.0
 SPOT_APEX_SUB = 16
 SPOT_EDGE_SUB = 8
+#: ``SingleScattering.tabulate``: Chebyshev points per axis of (log kappa_t, atanh g)
+TABLE_POINTS = 7
 
 
 def _cone_interval(u: np.ndarray, v: np.ndarray, axis: np.ndarray, cutoff_deg: float
@@ -169,6 +171,7 @@ class SingleScattering:
         self.nodes, self.nodes_upper = int(nodes), int(nodes_upper)
         self._rules = {n: _gauss_legendre(n) for n in {self.nodes, self.nodes_upper}}
         self._frozen: list | None = None
+        self._table: _ImageTable | None = None  # tabulate()
         self._cap_cells: np.ndarray | None = None
         self._freezing = False
         self._work = threading.local()  # arrays reused by the adaptive renders' cap matrices
@@ -410,10 +413,12 @@ class SingleScattering:
                 shape=(p[5].shape[0], len(cells))),) for p in panels]
             self._cap_cells, self._cap_cache = cells, OrderedDict()
         self._frozen = panels
+        self._table = None
 
     def unfreeze_nodes(self) -> None:
         self._frozen = None
         self._cap_cells = None
+        self._table = None
 
     def _line_integrals(self, kt: np.ndarray, g: np.ndarray) -> np.ndarray:
         """int p exp(-kt (d+s)) (source factor) dphi per ray and channel, shape (N, C).
@@ -447,31 +452,67 @@ class SingleScattering:
         return total
 
     def render(self, kappa_a, kappa_s, g, brightness) -> np.ndarray:
-        """Image (H, W, C) of the radiance at the camera; see ForwardModel."""
+        """Image (H, W, C) of the radiance at the camera; see ForwardModel.  Within the box of a
+        table (``tabulate``) the image is interpolated from it."""
         ka, ks, gg, br = check_render_args(len(self.channels), kappa_a, kappa_s, g, brightness)
         kt = ka + ks
+        table = getattr(self, "_table", None)  # (_line_model's copies have none)
+        if table is not None:
+            img = table.image(kt, ks, gg, br)
+            if img is not None:
+                return img
+        scattered, direct = self._parts(kt, gg, ks > 0)
+        out = scattered * (ks * br)
+        return out if direct is None else out + direct * br
+
+    def _parts(self, kt: np.ndarray, gg: np.ndarray, scat: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Per unit brightness, (H, W, C) each: the scattered light per unit kappa_s (0 where
+        not ``scat``) and the bulb seen directly through the liquid (None for a spot), so
+        that the image is brightness * (kappa_s * scattered + direct).  Box-filtered (the
+        filter is linear)."""
         n_pix = self.shape[0] * self.shape[1]
-        out = np.empty((*self.shape, len(self.channels)))
-        scat = ks > 0
         lines = np.zeros((len(self._h), len(kt)))
         if scat.any():
             lines[:, scat] = self._line_integrals(kt[scat], gg[scat])
-        for k in range(len(self.channels)):
-            if self.light.type == "bulb":
+        bulb = self.light.type == "bulb"
+        scattered = np.empty((*self.shape, len(kt)))
+        direct = np.zeros((*self.shape, len(kt))) if bulb else None
+        hit = np.flatnonzero(self._hit)
+        for k in range(len(kt)):
+            intensity = 1.0
+            if bulb:
                 r = self.light.radius
                 a = kt[k] * r
                 # a > A_OPAQUE: the light is attenuated by < e^-600 over one bulb radius, and the
                 # camera is farther than that from the bulb: no glow reaches it
                 e_cap = 0.0 if a > A_OPAQUE else np.exp(log_cap_attenuation(a))
-                intensity = np.pi * r * r * br[k] * e_cap
-            else:
-                intensity = br[k]
-            rad = intensity * ks[k] / self._h * lines[:, k]
-            if self.light.type == "bulb":
-                rad = rad + np.where(self._hit, br[k] * np.exp(-kt[k] * self._s_hit), 0.0)
-            out[..., k] = np.bincount(self._pix, weights=self._wts * rad,
-                                      minlength=n_pix).reshape(self.shape)
-        return self._box_filter(out) if self.box_filter else out
+                intensity = np.pi * r * r * e_cap
+                direct[..., k] = np.bincount(
+                    self._pix[hit], weights=self._wts[hit] * np.exp(-kt[k] * self._s_hit[hit]),
+                    minlength=n_pix).reshape(self.shape)
+            scattered[..., k] = np.bincount(self._pix, weights=self._wts * (intensity / self._h)
+                                            * lines[:, k], minlength=n_pix).reshape(self.shape)
+        if self.box_filter:
+            scattered = self._box_filter(scattered)
+            direct = None if direct is None else self._box_filter(direct)
+        return scattered, direct
+
+    def tabulate(self, log_kt: tuple[float, float], atanh_g: tuple[float, float],
+                 points: int = TABLE_POINTS) -> None:
+        """Tabulate the image of this one-channel model on ``points`` x ``points`` Chebyshev
+        points over the box ``log_kt`` x ``atanh_g`` (log of the extinction at this image,
+        atanh of g; each a (low, high) pair); later renders inside the box interpolate the
+        table (barycentric Lagrange interpolation, exact at the points), renders outside it
+        compute the image.  The quadrature must be frozen (``freeze_nodes``); freezing,
+        unfreezing or ``untabulate`` drop the table.  What it costs in accuracy is for the
+        caller to check (``ChannelProblem.tabulated``)."""
+        if len(self.channels) != 1 or self._frozen is None:
+            raise ValueError("tabulate: one channel and frozen quadrature nodes only")
+        self._table = _ImageTable(self, log_kt, atanh_g, int(points))
+
+    def untabulate(self) -> None:
+        self._table = None
 
     def _box_filter(self, img: np.ndarray) -> np.ndarray:
         """Pixel-footprint average from the samples: midpoint rule + its second-order term.
@@ -484,3 +525,63 @@ class SingleScattering:
         lap[1:-1, 1:-1] = (img[:-2, 1:-1] + img[2:, 1:-1] + img[1:-1, :-2] + img[1:-1, 2:]
                            - 4 * img[1:-1, 1:-1])
         return img + np.where(self._smooth[..., None], self._lap_scale * lap, 0.0)
+
+
+class _ImageTable:
+    """A one-channel model's image per unit brightness on a tensor grid of Chebyshev points
+    (first kind) in (log kappa_t, atanh g): the scattered part per unit kappa_s at every grid
+    point, the bulb seen directly (a function of kappa_t alone) at every log kappa_t point.
+    ``image`` interpolates both with barycentric Lagrange weights (exact at the grid
+    points; for the smooth dependence on the two coordinates the error falls geometrically
+    with the points per axis, Trefethen, Approximation Theory and Approximation Practice,
+    ch. 8)."""
+
+    def __init__(self, model: SingleScattering, log_kt: tuple[float, float],
+                 atanh_g: tuple[float, float], n: int):
+        box = np.array([log_kt, atanh_g], float)
+        if not (np.all(np.isfinite(box)) and np.all(box[:, 1] > box[:, 0]) and n >= 2):
+            raise ValueError(f"tabulate: empty or non-finite box {box.tolist()}, {n} points")
+        j = np.arange(n)
+        self.x = np.cos(np.pi * (j + 0.5) / n)  # in (-1, 1)
+        self.w = (-1.0) ** j * np.sin(np.pi * (j + 0.5) / n)  # barycentric weights
+        self.mid, self.half = box.mean(axis=1), 0.5 * (box[:, 1] - box[:, 0])
+        self.shape = model.shape
+        u, v = self.mid[:, None] + self.half[:, None] * self.x
+        rows, direct = [], []
+        for i in range(n):
+            for k in range(n):
+                s, d = model._parts(np.array([np.exp(u[i])]), np.array([np.tanh(v[k])]),
+                                    np.array([True]))
+                rows.append(s.ravel())
+                if k == 0:
+                    direct.append(None if d is None else d.ravel())
+        self.scattered = np.array(rows)  # (n * n, H * W), row i * n + k
+        self.d_idx = None
+        if direct[0] is not None:
+            d = np.array(direct)
+            self.d_idx = np.flatnonzero(np.any(d != 0.0, axis=0))
+            self.direct = np.ascontiguousarray(d[:, self.d_idx])
+
+    def _lagrange(self, t: float) -> np.ndarray:
+        d = t - self.x
+        at = np.flatnonzero(d == 0.0)
+        if len(at):
+            out = np.zeros(len(self.x))
+            out[at[0]] = 1.0
+            return out
+        q = self.w / d
+        return q / q.sum()
+
+    def image(self, kt: np.ndarray, ks: np.ndarray, g: np.ndarray, br: np.ndarray
+              ) -> np.ndarray | None:
+        """The image (H, W, 1) at these one-channel values, or None outside the box."""
+        if not (kt[0] > 0 and abs(g[0]) < 1):
+            return None
+        t = (np.array([np.log(kt[0]), np.arctanh(g[0])]) - self.mid) / self.half
+        if not np.all(np.abs(t) <= 1.0):
+            return None
+        lu, lv = self._lagrange(t[0]), self._lagrange(t[1])
+        img = (np.outer(lu, lv).ravel() @ self.scattered) * (ks[0] * br[0])
+        if self.d_idx is not None:
+            img[self.d_idx] += br[0] * (lu @ self.direct)
+        return img.reshape(*self.shape, 1)

@@ -7,6 +7,7 @@ pixels), so each channel is its own problem; they run in parallel processes.
 
 from __future__ import annotations
 
+import logging
 import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -25,6 +26,8 @@ from .optimize import MapResult, find_map
 from .params import G_MAX, G_MIN, ChannelParams, ParameterSpace
 from .result import FitOptions
 from .sample import Redraw, half_space, mix_modes, mode_log_mass, mode_weights, run_chain
+
+log = logging.getLogger("fitmedia")
 
 
 #: A second mode of g (the other sign) whose log posterior is within this of the MAP's is
@@ -417,15 +420,18 @@ def _sample_channel(problem: ChannelProblem, space: ParameterSpace, res: MapResu
     # with two modes each chain keeps to its own sign of g, so that the modes' masses can
     # be measured separately and the chains mixed by them
     log_post = half_space(problem.log_posterior, 2, res.x[2]) if two else problem.log_posterior
-    chain = run_chain(log_post, res.x, res.cov, space.lower, space.upper, rng=rng,
-                      checkpoint=checkpoint, resume=options.resume,
-                      n_walkers=options.n_walkers, n_tau=options.n_tau,
-                      max_steps=options.max_steps, progress=options.progress, label=channel,
-                      redraw=albedo_redraw(space, res.x, res.cov), identity=identity)
+    with problem.tabulated(res.x, res.cov) as table_err:  # the analytic image interpolated
+        log.debug("%s: sampler's image table %s", channel, "not used" if table_err is None
+                  else f"used (log-likelihood error at most {table_err:.1e})")
+        chain = run_chain(log_post, res.x, res.cov, space.lower, space.upper, rng=rng,
+                          checkpoint=checkpoint, resume=options.resume,
+                          n_walkers=options.n_walkers, n_tau=options.n_tau,
+                          max_steps=options.max_steps, progress=options.progress, label=channel,
+                          redraw=albedo_redraw(space, res.x, res.cov), identity=identity)
     out = dict(samples=chain.samples, log_prob=chain.log_prob_samples, n_steps=chain.n_steps,
                tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
                reason=chain.reason, burn=chain.burn, thin=chain.thin, chain=chain.chain,
-               ess=chain.ess, rhat=chain.rhat)
+               ess=chain.ess, rhat=chain.rhat, table_err=table_err)
     if two:
         out.update(_sample_other_mode(problem, space, res, alt, chain, log_post, options,
                                       checkpoint, seed, channel, other_mode, identity))

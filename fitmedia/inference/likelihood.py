@@ -22,6 +22,18 @@ from ..forward.base import ForwardModel
 from .params import ParameterSpace
 
 STUDENT_NU = 4.0
+#: ``ChannelProblem.tabulated``: the table's box spans the first of these many Laplace sd
+#: either side of the MAP in log kappa_t and atanh g whose table passes the check below (a
+#: Gaussian posterior's walkers stay within 8 sd but for ~1e-15; renders outside the box are
+#: computed, not interpolated) ...
+TABLE_REACH_SD = (16.0, 8.0, 4.0)
+#: ... and the tables are used only where the log likelihood they give differs from the
+#: computed one by less than this at every test point (the box's corners, edges' midpoints
+#: and centre, and the points halfway to them, where the interpolation errs most): the
+#: posterior density is then right to 1 % wherever the sampler goes
+TABLE_LOGL_TOL = 0.01
+#: the test points' offsets from the MAP, in units of the box's half-width, per axis
+TABLE_TEST_T = (-1.0, -0.5, 0.0, 0.5, 1.0)
 
 
 @dataclass
@@ -119,6 +131,63 @@ class ChannelProblem:
                 if hasattr(m, "_local"):
                     m._local, m._var0 = loc, var0
             self._model_var = var
+
+    @contextmanager
+    def tabulated(self, x: np.ndarray, cov: np.ndarray | None):
+        """Within the block every observation's analytic image (single scattering, or a full
+        model's analytic part) is interpolated from a table over a box of ``TABLE_REACH_SD``
+        Laplace sd (``cov``) around ``x`` in log kappa_t and atanh g
+        (``SingleScattering.tabulate``), where the log likelihood it gives is within
+        ``TABLE_LOGL_TOL`` of the computed one at every test point; else, or without a
+        covariance, frozen quadrature or one-channel models, nothing changes.  For the
+        sampler, which evaluates the posterior 10^4-10^5 times within a few sd of the MAP
+        (measured: docs/inference.md, "The sampler's table").  Yields the largest
+        log-likelihood difference found at the test points (None: no tables)."""
+        models = [getattr(o.model, "single", o.model) for o in self.obs]
+        err = None
+        try:
+            err = self._tabulate(models, np.asarray(x, float), cov)
+            yield err
+        finally:
+            for m in models:
+                if hasattr(m, "untabulate"):
+                    m.untabulate()
+
+    def _tabulate(self, models: list, x: np.ndarray, cov: np.ndarray | None) -> float | None:
+        """``tabulated``'s tables, built and checked; the largest difference, or None."""
+        ok = all(hasattr(m, "tabulate") and len(m.channels) == 1 and m._frozen is not None
+                 for m in models)
+        if not ok or cov is None or not np.all(np.isfinite(np.diag(cov))):
+            return None
+        for reach in TABLE_REACH_SD:
+            worst = self._tabulate_box(models, x, reach * np.sqrt(np.diag(cov)[[0, 2]]))
+            if worst is not None:
+                return worst
+        return None
+
+    def _tabulate_box(self, models: list, x: np.ndarray, half: np.ndarray) -> float | None:
+        """Tables over ``x`` +- ``half`` in (log kappa_t, atanh g), kept where they pass
+        ``tabulated``'s check: the largest log-likelihood difference, or None."""
+        lo = np.maximum(x[[0, 2]] - half, self.space.lower[[0, 2]])
+        hi = np.minimum(x[[0, 2]] + half, self.space.upper[[0, 2]])
+        if not np.all(hi > lo):
+            return None
+        tests = []
+        for tu in TABLE_TEST_T:
+            for tv in TABLE_TEST_T:
+                u = x.copy()
+                u[[0, 2]] = 0.5 * (lo + hi) + 0.5 * (hi - lo) * np.array([tu, tv])
+                tests.append(u)
+        exact = [self.log_likelihood(u) for u in tests]
+        for o, m in zip(self.obs, models):
+            kt = [o.concentration * np.exp(e) + self.water_kappa_a for e in (lo[0], hi[0])]
+            m.tabulate((np.log(kt[0]), np.log(kt[1])), (lo[1], hi[1]))
+        worst = max(abs(self.log_likelihood(u) - e) for u, e in zip(tests, exact))
+        if not worst < TABLE_LOGL_TOL:  # (NaN too)
+            for m in models:
+                m.untabulate()
+            return None
+        return float(worst)
 
     def refresh_models(self, u: np.ndarray) -> None:
         """Rebuild the local model of every Monte Carlo forward model (``refresh``, as
