@@ -170,6 +170,19 @@ def test_trace_in_chunks_is_the_trace_in_one_piece(monkeypatch, seed):
     np.testing.assert_allclose(chunked, whole, rtol=1e-9, atol=1e-15 * np.abs(whole).max())
 
 
+def test_a_short_trace_is_the_start_of_a_long_one(seed):
+    """PathTracer.trace up to order 2 (the camera paths' share of a bulb's term) stops after
+    the last vertex's front-wall connection, without tracing the segment beyond it: its
+    orders must equal, bit for bit, the first orders of a trace that goes on to order 6 (the
+    random numbers are drawn by order and path, and the roulette acts after each order's
+    light is scored)."""
+    _, ms = _small()
+    short, n_short = ms.tracer.trace(MILK["kt"], MILK["g"], ms.n_paths, seed, ms.batches, 2)
+    long, n_long = ms.tracer.trace(MILK["kt"], MILK["g"], ms.n_paths, seed, ms.batches, 6)
+    assert short.shape[1] == 3 and short[:, 2].any()
+    assert np.array_equal(short, long[:, :3]) and np.array_equal(n_short, n_long)
+
+
 def test_albedo_to_zero_is_linear(seed):
     """albedo -> 0: the term -> 0 like albedo (only order 1 via the front wall is linear in it;
     it is ~3e-4 of order 2 for milk here, so the limit shows below albedo ~1e-6): term(2a) / term(a)

@@ -669,8 +669,9 @@ def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt,
     The second chain and the bridge/mixing draw from random streams of their own (``seed``
     plus 2 and 3): a resumed first chain skips its initial draws, and must not shift them."""
     rng = np.random.default_rng([*seed, 3])
-    mass = [mode_log_mass(log_post, chain.samples, chain.log_prob_samples, space.lower,
-                          space.upper, rng, n_eff=_min_ess(chain))]
+    with problem.tabulated(res.x, res.cov):  # the images its chain's log_prob came from
+        mass = [mode_log_mass(log_post, chain.samples, chain.log_prob_samples, space.lower,
+                              space.upper, rng, n_eff=_min_ess(chain))]
     with problem.models_kept():  # a full-transport model: its local model at res afterwards
         problem.refresh_models(alt.x)  # full transport: the local model rebuilt at this mode
         problem.adapt(alt.x)
@@ -678,15 +679,17 @@ def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt,
         polished = find_map(log_alt, alt.x, space.lower, space.upper, global_evals=0)
         ckpt = None if checkpoint is None else checkpoint.with_name(
             checkpoint.stem + "_mode2" + checkpoint.suffix)
-        chain2 = run_chain(log_alt, polished.x, polished.cov, space.lower, space.upper,
-                           rng=np.random.default_rng([*seed, 2]),
-                           checkpoint=ckpt, resume=options.resume, n_walkers=options.n_walkers,
-                           n_tau=options.n_tau, max_steps=options.max_steps,
-                           progress=options.progress, label=f"{channel} mode 2",
-                           redraw=albedo_redraw(space, polished.x, polished.cov),
-                           identity=identity)
-        mass.append(mode_log_mass(log_alt, chain2.samples, chain2.log_prob_samples,
-                                  space.lower, space.upper, rng, n_eff=_min_ess(chain2)))
+        with problem.tabulated(polished.x, polished.cov):  # as for the first chain
+            chain2 = run_chain(log_alt, polished.x, polished.cov, space.lower, space.upper,
+                               rng=np.random.default_rng([*seed, 2]),
+                               checkpoint=ckpt, resume=options.resume,
+                               n_walkers=options.n_walkers, n_tau=options.n_tau,
+                               max_steps=options.max_steps, progress=options.progress,
+                               label=f"{channel} mode 2",
+                               redraw=albedo_redraw(space, polished.x, polished.cov),
+                               identity=identity)
+            mass.append(mode_log_mass(log_alt, chain2.samples, chain2.log_prob_samples,
+                                      space.lower, space.upper, rng, n_eff=_min_ess(chain2)))
     problem.adapt(res.x)
     w = mode_weights(mass)
     idx = mix_modes([chain.samples, chain2.samples], w, rng)

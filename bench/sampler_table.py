@@ -1,0 +1,135 @@
+"""What the sampler's table of the analytic image (``ChannelProblem.tabulated``) does to the
+cost of one posterior evaluation and of a chain, against the images computed, in one run.
+
+A capture of the canonical bulb (``--size``, default the canonical 200 x 150), Lowfat Milk 16
+ml in 23 l, made with ``fitmedia synth --model hybrid`` (a bench capture of bench/fit_full.py
+is reused with ``--capture``); channel G's problem built as ``fitmedia fit`` builds it, the
+quadrature frozen at the truth and the Laplace covariance taken there.  Measured, each with
+and without the table:
+
+1. one log-posterior evaluation (mean over ``--evals`` points drawn from the Laplace
+   approximation), single scattering; and the largest difference of the log posterior;
+2. an emcee chain of ``--steps`` steps (16 walkers, the fit's moves, the same seed), and the
+   largest difference between the two chains' samples (identical chains: the accept
+   decisions did not change);
+3. with ``--full``: the same evaluation with the full-transport model, its term refreshed
+   once at the truth (the fit's paths and bin).
+
+Usage:  python bench/sampler_table.py [--size W H] [--capture DIR] [--full] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from fit_full import scaled_spec  # noqa: E402
+
+from fitmedia.inference import fit as F  # noqa: E402
+from fitmedia.inference.optimize import laplace_covariance  # noqa: E402
+from fitmedia.inference.params import ChannelParams  # noqa: E402
+from fitmedia.inference.result import FitOptions  # noqa: E402
+from fitmedia.inference.sample import run_chain  # noqa: E402
+from fitmedia.spec import load_spec  # noqa: E402
+
+
+def capture(a) -> Path:
+    if a.capture:
+        return Path(a.capture) / "capture.yaml"
+    cap = a.out / "capture"
+    if not (cap / "capture.yaml").exists():
+        geo = scaled_spec(a.out, tuple(a.size))
+        subprocess.run([sys.executable, "-m", "fitmedia.cli", "synth", str(geo), "--medium",
+                        "Lowfat Milk", "--ml", "16", "--model", "hybrid", "--spp", "256",
+                        "--seed", "1", "--out", str(cap)], cwd=ROOT, check=True)
+    return cap / "capture.yaml"
+
+
+def per_eval(problem, x, cov, pts) -> tuple[float, float, float]:
+    """(ms without, ms with the table, largest log-posterior difference) over ``pts``."""
+    def timed():
+        problem.log_posterior(x)
+        t = time.perf_counter()
+        out = [problem.log_posterior(p) for p in pts]
+        return (time.perf_counter() - t) / len(pts) * 1e3, np.array(out)
+
+    t0, exact = timed()
+    with problem.tabulated(x, cov) as err:
+        if err is None:
+            raise SystemExit("the table was refused")
+        t1, tab = timed()
+    return t0, t1, float(np.max(np.abs(tab - exact)))
+
+
+def chain(problem, x, cov, space, steps: int, table: bool):
+    def run():
+        t = time.perf_counter()
+        c = run_chain(problem.log_posterior, x, cov, space.lower, space.upper,
+                      rng=np.random.default_rng(5), n_tau=1e6, max_steps=steps,
+                      progress=False, redraw=F.albedo_redraw(space, x, cov))
+        return time.perf_counter() - t, c.chain
+
+    if not table:
+        return run()
+    with problem.tabulated(x, cov):
+        return run()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, nargs=2, default=(200, 150), metavar=("W", "H"))
+    ap.add_argument("--capture", help="a capture directory to reuse (capture.yaml, truth.json)")
+    ap.add_argument("--evals", type=int, default=100)
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--full", action="store_true")
+    ap.add_argument("--out", type=Path, default=Path("out/bench_sampler_table"))
+    a = ap.parse_args()
+    a.out.mkdir(parents=True, exist_ok=True)
+    path = capture(a)
+    truth = json.loads((path.parent / "truth.json").read_text())["undiluted"]
+    spec = load_spec(path)
+    prep = F.prepare(spec)
+    opts = FitOptions(model="single", progress=False)
+    args = F.channel_args(prep, "G", opts, None)
+    setup = F.channel_problem(*args[:8], args[11], args[12])
+    problem, space = setup.problem, setup.space
+    kt, ks, g = (truth[k]["G"] for k in ("kappa_t", "kappa_s", "g"))
+    x = space.to_vector(ChannelParams(kt, ks / kt, g, prep.brightness["G"]
+                                      if setup.free else None))
+    problem.adapt(x)
+    cov = laplace_covariance(problem.log_posterior, x, space.lower, space.upper)
+    pts = np.random.default_rng(3).multivariate_normal(x, cov, size=a.evals)
+    pts = np.clip(pts, space.lower + 1e-9, space.upper - 1e-9)
+    w, h = spec.camera.width, spec.camera.height
+    print(f"{w} x {h} px, channel G, {len(problem.obs)} image(s)")
+    t0, t1, d = per_eval(problem, x, cov, pts)
+    print(f"single, one evaluation: {t0:.2f} ms computed, {t1:.2f} ms from the table, "
+          f"ratio {t1 / t0:.3f}; largest log-posterior difference {d:.1e}")
+    (c0, ch0), (c1, ch1) = (chain(problem, x, cov, space, a.steps, t) for t in (False, True))
+    print(f"single, a chain of {a.steps} steps x 16 walkers: {c0:.1f} s computed, {c1:.1f} s "
+          f"with the table, ratio {c1 / c0:.3f}; largest sample difference "
+          f"{np.max(np.abs(ch0 - ch1)):.1e}")
+    if a.full:
+        from fitmedia.inference.full import use_full_transport
+
+        use_full_transport(problem, spec, "G", seed=1)
+        t = time.perf_counter()
+        problem.refresh_models(x)
+        print(f"full: the term traced once at the truth in {time.perf_counter() - t:.0f} s")
+        t0, t1, d = per_eval(problem, x, cov, pts)
+        print(f"full, one evaluation: {t0:.2f} ms computed, {t1:.2f} ms from the table, "
+              f"ratio {t1 / t0:.3f}; largest log-posterior difference {d:.1e}")
+
+
+if __name__ == "__main__":
+    main()
