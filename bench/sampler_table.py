@@ -3,17 +3,17 @@ cost of one posterior evaluation and of a chain, against the images computed, in
 
 A capture of the canonical bulb (``--size``, default the canonical 200 x 150), Lowfat Milk 16
 ml in 23 l, made with ``fitmedia synth --model hybrid`` (a bench capture of bench/fit_full.py
-is reused with ``--capture``); channel G's problem built as ``fitmedia fit`` builds it, the
-quadrature frozen at the truth and the Laplace covariance taken there.  Measured, each with
-and without the table:
+is reused with ``--capture``); channel G's problem built as ``fitmedia fit`` builds it.
+Single scattering at its MAP (``search_map``, as the fit finds it), with ``--full`` also the
+full-transport model at the truth (its term traced once there, the fit's paths and bin), the
+quadrature frozen there and the Laplace covariance taken there.  Measured, each with and
+without the table:
 
 1. one log-posterior evaluation (mean over ``--evals`` points drawn from the Laplace
-   approximation), single scattering; and the largest difference of the log posterior;
+   approximation); and the largest difference of the log posterior;
 2. an emcee chain of ``--steps`` steps (16 walkers, the fit's moves, the same seed), and the
    largest difference between the two chains' samples (identical chains: the accept
-   decisions did not change);
-3. with ``--full``: the same evaluation with the full-transport model, its term refreshed
-   once at the truth (the fit's paths and bin).
+   decisions did not change); and the share of its renders the table served.
 
 Usage:  python bench/sampler_table.py [--size W H] [--capture DIR] [--full] [--out DIR]
 """
@@ -64,8 +64,8 @@ def per_eval(problem, x, cov, pts) -> tuple[float, float, float]:
         return (time.perf_counter() - t) / len(pts) * 1e3, np.array(out)
 
     t0, exact = timed()
-    with problem.tabulated(x, cov) as err:
-        if err is None:
+    with problem.tabulated(x, cov) as use:
+        if use.logl_error is None:
             raise SystemExit("the table was refused")
         t1, tab = timed()
     return t0, t1, float(np.max(np.abs(tab - exact)))
@@ -80,9 +80,25 @@ def chain(problem, x, cov, space, steps: int, table: bool):
         return time.perf_counter() - t, c.chain
 
     if not table:
-        return run()
-    with problem.tabulated(x, cov):
-        return run()
+        return run() + (None,)
+    with problem.tabulated(x, cov) as use:
+        return run() + (use.share,)
+
+
+def compare(label: str, problem, space, x, steps: int, n_evals: int) -> None:
+    """Both measurements at ``x`` (quadrature frozen there, Laplace covariance there)."""
+    problem.adapt(x)
+    cov = laplace_covariance(problem.log_posterior, x, space.lower, space.upper)
+    pts = np.random.default_rng(3).multivariate_normal(x, cov, size=n_evals)
+    pts = np.clip(pts, space.lower + 1e-9, space.upper - 1e-9)
+    t0, t1, d = per_eval(problem, x, cov, pts)
+    print(f"{label}, one evaluation: {t0:.2f} ms computed, {t1:.2f} ms from the table, "
+          f"ratio {t1 / t0:.3f}; largest log-posterior difference {d:.1e}")
+    (c0, ch0, _), (c1, ch1, share) = (chain(problem, x, cov, space, steps, t)
+                                      for t in (False, True))
+    print(f"{label}, a chain of {steps} steps x 16 walkers: {c0:.1f} s computed, {c1:.1f} s "
+          f"with the table (it served {share:.0%} of the renders), ratio {c1 / c0:.3f}; "
+          f"largest sample difference {np.max(np.abs(ch0 - ch1)):.1e}")
 
 
 def main() -> None:
@@ -104,31 +120,20 @@ def main() -> None:
     setup = F.channel_problem(*args[:8], args[11], args[12])
     problem, space = setup.problem, setup.space
     kt, ks, g = (truth[k]["G"] for k in ("kappa_t", "kappa_s", "g"))
-    x = space.to_vector(ChannelParams(kt, ks / kt, g, prep.brightness["G"]
-                                      if setup.free else None))
-    problem.adapt(x)
-    cov = laplace_covariance(problem.log_posterior, x, space.lower, space.upper)
-    pts = np.random.default_rng(3).multivariate_normal(x, cov, size=a.evals)
-    pts = np.clip(pts, space.lower + 1e-9, space.upper - 1e-9)
+    truth_x = space.to_vector(ChannelParams(kt, ks / kt, g, prep.brightness["G"]
+                                            if setup.free else None))
     w, h = spec.camera.width, spec.camera.height
     print(f"{w} x {h} px, channel G, {len(problem.obs)} image(s)")
-    t0, t1, d = per_eval(problem, x, cov, pts)
-    print(f"single, one evaluation: {t0:.2f} ms computed, {t1:.2f} ms from the table, "
-          f"ratio {t1 / t0:.3f}; largest log-posterior difference {d:.1e}")
-    (c0, ch0), (c1, ch1) = (chain(problem, x, cov, space, a.steps, t) for t in (False, True))
-    print(f"single, a chain of {a.steps} steps x 16 walkers: {c0:.1f} s computed, {c1:.1f} s "
-          f"with the table, ratio {c1 / c0:.3f}; largest sample difference "
-          f"{np.max(np.abs(ch0 - ch1)):.1e}")
+    res, _ = F.search_map(setup, opts, np.random.default_rng(0))
+    compare("single (at its MAP)", problem, space, res.x, a.steps, a.evals)
     if a.full:
         from fitmedia.inference.full import use_full_transport
 
         use_full_transport(problem, spec, "G", seed=1)
         t = time.perf_counter()
-        problem.refresh_models(x)
+        problem.refresh_models(truth_x)
         print(f"full: the term traced once at the truth in {time.perf_counter() - t:.0f} s")
-        t0, t1, d = per_eval(problem, x, cov, pts)
-        print(f"full, one evaluation: {t0:.2f} ms computed, {t1:.2f} ms from the table, "
-              f"ratio {t1 / t0:.3f}; largest log-posterior difference {d:.1e}")
+        compare("full (at the truth)", problem, space, truth_x, a.steps, a.evals)
 
 
 if __name__ == "__main__":

@@ -96,10 +96,15 @@ def test_problem_tables_keep_the_log_posterior(rng):
     cov = np.diag([0.01, 0.04, 0.01]) ** 2
     pts = [x + rng.uniform(-8, 8, 3) * np.sqrt(np.diag(cov)) for _ in range(20)]
     exact = [problem.log_posterior(p) for p in pts]
-    with problem.tabulated(x, cov) as err:
-        assert err is not None and err < likelihood.TABLE_LOGL_TOL
+    with problem.tabulated(x, cov) as use:
+        assert use.logl_error is not None and use.logl_error < likelihood.TABLE_LOGL_TOL
         assert problem.obs[0].model._table is not None
+        n0 = use.tables[0].used + use.tables[0].outside
         got = [problem.log_posterior(p) for p in pts]
+        inside = [abs(p[0] - x[0]) <= 16 * 0.01 and abs(p[2] - x[2]) <= 16 * 0.01 for p in pts]
+        # every point is inside the first (16 sd) box, which passed here
+        assert all(inside) and use.tables[0].used + use.tables[0].outside == n0 + len(pts)
+        assert use.tables[0].outside == 0
     assert np.max(np.abs(np.subtract(got, exact))) < likelihood.TABLE_LOGL_TOL
     assert problem.obs[0].model._table is None
 
@@ -110,8 +115,9 @@ def test_problem_refuses_tables_that_miss_the_tolerance(rng, monkeypatch):
     problem, x = _problem(rng)
     cov = np.diag([0.01, 0.04, 0.01]) ** 2
     monkeypatch.setattr(likelihood, "TABLE_LOGL_TOL", 0.0)
-    with problem.tabulated(x, cov) as err:
-        assert err is None and problem.obs[0].model._table is None
+    with problem.tabulated(x, cov) as use:
+        assert use.logl_error is None and use.share is None
+        assert problem.obs[0].model._table is None
     monkeypatch.undo()
-    with problem.tabulated(x, None) as err:
-        assert err is None and problem.obs[0].model._table is None
+    with problem.tabulated(x, None) as use:
+        assert use.logl_error is None and problem.obs[0].model._table is None

@@ -546,6 +546,7 @@ class _ImageTable:
         self.w = (-1.0) ** j * np.sin(np.pi * (j + 0.5) / n)  # barycentric weights
         self.mid, self.half = box.mean(axis=1), 0.5 * (box[:, 1] - box[:, 0])
         self.shape = model.shape
+        self.used = self.outside = 0  # renders from the table, renders outside its box
         u, v = self.mid[:, None] + self.half[:, None] * self.x
         rows, direct = [], []
         for i in range(n):
@@ -576,10 +577,13 @@ class _ImageTable:
               ) -> np.ndarray | None:
         """The image (H, W, 1) at these one-channel values, or None outside the box."""
         if not (kt[0] > 0 and abs(g[0]) < 1):
+            self.outside += 1
             return None
         t = (np.array([np.log(kt[0]), np.arctanh(g[0])]) - self.mid) / self.half
-        if not np.all(np.abs(t) <= 1.0):
+        if not np.all(np.abs(t) <= 1.0 + 1e-9):  # (the box's edges, after rounding)
+            self.outside += 1
             return None
+        self.used += 1
         lu, lv = self._lagrange(t[0]), self._lagrange(t[1])
         img = (np.outer(lu, lv).ravel() @ self.scattered) * (ks[0] * br[0])
         if self.d_idx is not None:

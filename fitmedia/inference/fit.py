@@ -420,18 +420,20 @@ def _sample_channel(problem: ChannelProblem, space: ParameterSpace, res: MapResu
     # with two modes each chain keeps to its own sign of g, so that the modes' masses can
     # be measured separately and the chains mixed by them
     log_post = half_space(problem.log_posterior, 2, res.x[2]) if two else problem.log_posterior
-    with problem.tabulated(res.x, res.cov) as table_err:  # the analytic image interpolated
-        log.debug("%s: sampler's image table %s", channel, "not used" if table_err is None
-                  else f"used (log-likelihood error at most {table_err:.1e})")
+    with problem.tabulated(res.x, res.cov) as table:  # the analytic image interpolated
         chain = run_chain(log_post, res.x, res.cov, space.lower, space.upper, rng=rng,
                           checkpoint=checkpoint, resume=options.resume,
                           n_walkers=options.n_walkers, n_tau=options.n_tau,
                           max_steps=options.max_steps, progress=options.progress, label=channel,
                           redraw=albedo_redraw(space, res.x, res.cov), identity=identity)
+    log.debug("%s: sampler's image table %s", channel, "not used" if table.logl_error is None
+              else f"used for {table.share:.0%} of the renders (log-likelihood error at "
+                   f"most {table.logl_error:.1e})")
     out = dict(samples=chain.samples, log_prob=chain.log_prob_samples, n_steps=chain.n_steps,
                tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
                reason=chain.reason, burn=chain.burn, thin=chain.thin, chain=chain.chain,
-               ess=chain.ess, rhat=chain.rhat, table_err=table_err)
+               ess=chain.ess, rhat=chain.rhat, table_err=table.logl_error,
+               table_share=table.share)
     if two:
         out.update(_sample_other_mode(problem, space, res, alt, chain, log_post, options,
                                       checkpoint, seed, channel, other_mode, identity))

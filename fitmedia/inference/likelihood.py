@@ -71,6 +71,22 @@ def quantisation_var(values: np.ndarray) -> float:
     return max(float(np.spacing(top)) ** 2 / 12.0, np.finfo(float).tiny)
 
 
+@dataclass
+class TableUse:
+    """What ``ChannelProblem.tabulated`` did: the largest log-likelihood difference at its
+    test points (None: no tables, every image computed) and the tables themselves."""
+
+    logl_error: float | None
+    tables: list
+
+    @property
+    def share(self) -> float | None:
+        """The share of the renders since the tables were built that they served (None:
+        no tables, or no renders)."""
+        n = sum(t.used + t.outside for t in self.tables)
+        return sum(t.used for t in self.tables) / n if n else None
+
+
 class ChannelProblem:
     """Posterior of one channel's parameters given its observations.
 
@@ -142,12 +158,14 @@ class ChannelProblem:
         covariance, frozen quadrature or one-channel models, nothing changes.  For the
         sampler, which evaluates the posterior 10^4-10^5 times within a few sd of the MAP
         (measured: docs/inference.md, "The sampler's table").  Yields the largest
-        log-likelihood difference found at the test points (None: no tables)."""
+        log-likelihood difference found at the test points and the share of renders the
+        tables served (:class:`TableUse`)."""
         models = [getattr(o.model, "single", o.model) for o in self.obs]
-        err = None
+        use = TableUse(None, [])
         try:
-            err = self._tabulate(models, np.asarray(x, float), cov)
-            yield err
+            use.logl_error = self._tabulate(models, np.asarray(x, float), cov)
+            use.tables = [m._table for m in models if getattr(m, "_table", None) is not None]
+            yield use
         finally:
             for m in models:
                 if hasattr(m, "untabulate"):
