@@ -658,6 +658,12 @@ def _min_ess(chain) -> float | None:
     return None if chain.ess is None else float(np.min(chain.ess))
 
 
+def _chain_mass(log_prob, chain, space: ParameterSpace, rng: np.random.Generator):
+    """The log mass of the mode that ``chain`` sampled (``mode_log_mass``)."""
+    return mode_log_mass(log_prob, chain.samples, chain.log_prob_samples, space.lower,
+                         space.upper, rng, n_eff=_min_ess(chain))
+
+
 def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt, chain,
                        log_post, options: FitOptions, checkpoint: Path | None,
                        seed: list[int], channel: str, other_mode: dict,
@@ -672,8 +678,7 @@ def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt,
     plus 2 and 3): a resumed first chain skips its initial draws, and must not shift them."""
     rng = np.random.default_rng([*seed, 3])
     with problem.tabulated(res.x, res.cov):  # the images its chain's log_prob came from
-        mass = [mode_log_mass(log_post, chain.samples, chain.log_prob_samples, space.lower,
-                              space.upper, rng, n_eff=_min_ess(chain))]
+        mass = [_chain_mass(log_post, chain, space, rng)]
     with problem.models_kept():  # a full-transport model: its local model at res afterwards
         problem.refresh_models(alt.x)  # full transport: the local model rebuilt at this mode
         problem.adapt(alt.x)
@@ -683,15 +688,13 @@ def _sample_other_mode(problem: ChannelProblem, space: ParameterSpace, res, alt,
             checkpoint.stem + "_mode2" + checkpoint.suffix)
         with problem.tabulated(polished.x, polished.cov):  # as for the first chain
             chain2 = run_chain(log_alt, polished.x, polished.cov, space.lower, space.upper,
-                               rng=np.random.default_rng([*seed, 2]),
-                               checkpoint=ckpt, resume=options.resume,
-                               n_walkers=options.n_walkers, n_tau=options.n_tau,
-                               max_steps=options.max_steps, progress=options.progress,
-                               label=f"{channel} mode 2",
+                               rng=np.random.default_rng([*seed, 2]), checkpoint=ckpt,
+                               resume=options.resume, n_walkers=options.n_walkers,
+                               n_tau=options.n_tau, max_steps=options.max_steps,
+                               progress=options.progress, label=f"{channel} mode 2",
                                redraw=albedo_redraw(space, polished.x, polished.cov),
                                identity=identity)
-            mass.append(mode_log_mass(log_alt, chain2.samples, chain2.log_prob_samples,
-                                      space.lower, space.upper, rng, n_eff=_min_ess(chain2)))
+            mass.append(_chain_mass(log_alt, chain2, space, rng))
     problem.adapt(res.x)
     w = mode_weights(mass)
     idx = mix_modes([chain.samples, chain2.samples], w, rng)
