@@ -426,14 +426,13 @@ def _sample_channel(problem: ChannelProblem, space: ParameterSpace, res: MapResu
                           n_walkers=options.n_walkers, n_tau=options.n_tau,
                           max_steps=options.max_steps, progress=options.progress, label=channel,
                           redraw=albedo_redraw(space, res.x, res.cov), identity=identity)
-    log.debug("%s: sampler's image table %s", channel, "not used" if table.logl_error is None
-              else f"used for {table.share:.0%} of the renders (log-likelihood error at "
-                   f"most {table.logl_error:.1e})")
+    log.info("%s: sampler's image table %s", channel, "not used" if table.logl_error is None
+             else f"used for {table.share or 0:.0%} of this run's renders (log-likelihood "
+                  f"error at most {table.logl_error:.1e})")
     out = dict(samples=chain.samples, log_prob=chain.log_prob_samples, n_steps=chain.n_steps,
                tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
                reason=chain.reason, burn=chain.burn, thin=chain.thin, chain=chain.chain,
-               ess=chain.ess, rhat=chain.rhat, table_err=table.logl_error,
-               table_share=table.share)
+               ess=chain.ess, rhat=chain.rhat, table_err=table.logl_error)
     if two:
         out.update(_sample_other_mode(problem, space, res, alt, chain, log_post, options,
                                       checkpoint, seed, channel, other_mode, identity))
