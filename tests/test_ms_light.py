@@ -54,6 +54,32 @@ def test_the_connection_is_the_camera_ray_through_the_wall(rng):
     assert np.abs(np.linalg.norm(off, axis=1)).max() < 1e-6
 
 
+@pytest.mark.parametrize("camera_z", [900.0, 170.0])
+def test_the_connection_solves_the_refraction_equation(rng, camera_z):
+    """The connection's angle in the air solves the defining equation written the other way,
+    in the angle itself (D tan theta_a + t tan theta_g + a tan theta_w = rho with Snell's
+    sines; the iteration works on tan theta_a), to 1e-12 of rho, at every point of the tank:
+    with the canonical camera (900 mm, narrow angles) and one 14 mm from the glass (angles in
+    the air up to ~85 degrees).  The iteration before stop 38 (Newton on theta_a, 12 fixed
+    steps) left 78 of 4000 such points up to 0.17 rad off with the close camera."""
+    from conftest import geometry_dict
+    from fitmedia.spec import parse_spec
+
+    d = geometry_dict(width=48, height=36)
+    d["camera"]["position"] = [0, 0, camera_z]
+    spec = parse_spec(d, require_images=False)
+    lt = MultipleScattering(spec, None, channels=("G",), bin=1, n_paths=16).photons
+    y = np.column_stack([rng.uniform(-149.9, 149.9, 4000), rng.uniform(-124.9, 124.9, 4000),
+                         rng.uniform(-149.9, 149.9, 4000)])
+    th, a, rho, _ = lt._chief(y)
+    assert th.max() > (1.2 if camera_z < 500 else 0.1)
+    s, c = np.sin(th), np.cos(th)
+    sg, sw = s / lt.ng, s / lt.nw
+    far = lt.o[2] - (lt.hz + lt.t)
+    f = far * s / c + lt.t * sg / np.sqrt(1 - sg * sg) + a * sw / np.sqrt(1 - sw * sw) - rho
+    assert np.abs(f).max() < 1e-12 * max(rho.max(), 1.0)
+
+
 def test_photons_order_one_is_the_analytic_single_scattering(seed):
     """The photons' first collisions, connected to the camera, against the analytic model's
     order 1 (exact line integrals; a separate code path for geometry, Fresnel, units and the

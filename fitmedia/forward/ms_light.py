@@ -40,7 +40,10 @@ from .ms_paths import RR_MIN, PathTracer, around, box_exit, sample_hg, sphere_hi
 LIGHT_FROM_ORDER = 3
 LIGHT_SALT = 0x5DEECE66D  # photons' random numbers: another stream than the camera paths'
 PHOTON_CHUNK = 1 << 18
-NEWTON_STEPS = 12
+NEWTON_STEPS = 40  # at most; they stop once every angle moved by less than NEWTON_TOL
+#: radians: Newton converges quadratically near the root, so the step after one this small
+#: is at rounding (``LightTracer._chief``; 12 fixed steps were 18 % of a photon trace)
+NEWTON_TOL = 1e-12
 
 
 def pixel_solid_angles(camera, sub: int = 8) -> np.ndarray:
@@ -72,21 +75,35 @@ class LightTracer:
     # ------------------------------------------------------------------ camera
     def _chief(self, y: np.ndarray):
         """The ray from ``y`` (in the water) to the pinhole through the front wall: angle in
-        the air theta_a (Newton on rho(theta_a) = D tan theta_a + t tan theta_g + a tan
-        theta_w, convex and increasing), with sines, cosines, d rho / d theta_a and the unit
-        lateral direction."""
+        the air theta_a, the water depth above ``y``, the lateral distance rho to the camera's
+        axis through ``y`` and the unit lateral direction.
+
+        Newton's method on u = tan theta_a: rho(u) = D u + t h_g(u) + a h_w(u), with
+        h_n(u) = tan theta_n = u / sqrt(n^2 + (n^2 - 1) u^2) (Snell).  Each h_n is concave
+        and increasing with slope 1/n at 0, so rho(u) is concave, the paraxial root
+        rho / (D + t / n_g + a / n_w) is below the root, and from there Newton's iterates rise
+        monotonically to it (no overshoot).  Until 2026-12-05 (stop 38) the iteration was on
+        theta_a itself, where rho is convex: from the same start the first step overshot, and
+        where it overshot past 90 degrees (the clip) 12 fixed steps had not come back; with
+        a camera 14 mm from the glass, 78 of 4000 points in the tank ended up to 0.17 rad off
+        (all outside that camera's view; none at the canonical 900 mm)."""
         a = self.hz - y[:, 2]
         far = self.o[2] - (self.hz + self.t)
         hvec = self.o[None, :2] - y[:, :2]
         rho = np.linalg.norm(hvec, axis=1)
-        th = np.arctan2(rho, far + self.t / self.ng + a / self.nw)  # paraxial: below the root
+        g2, w2 = self.ng * self.ng, self.nw * self.nw
+        u = rho / (far + self.t / self.ng + a / self.nw)  # paraxial: below the root
         for _ in range(NEWTON_STEPS):
-            s, c = np.sin(th), np.cos(th)
-            sg, sw = s / self.ng, s / self.nw
-            cg, cw = np.sqrt(1 - sg * sg), np.sqrt(1 - sw * sw)
-            f = far * s / c + self.t * sg / cg + a * sw / cw - rho
-            df = far / (c * c) + self.t * c / (self.ng * cg**3) + a * c / (self.nw * cw**3)
-            th = np.clip(th - f / df, 0.0, 0.5 * np.pi - 1e-7)
+            u2 = u * u
+            qg, qw = g2 + (g2 - 1.0) * u2, w2 + (w2 - 1.0) * u2
+            rg, rw = 1.0 / np.sqrt(qg), 1.0 / np.sqrt(qw)
+            f = u * (far + self.t * rg + a * rw) - rho
+            df = far + self.t * g2 * rg / qg + a * w2 * rw / qw
+            step = f / df
+            u -= step
+            if np.max(np.abs(step) / (1.0 + u * u), initial=0.0) < NEWTON_TOL:
+                break
+        th = np.arctan(u)
         hu = np.where(rho[:, None] > 0, hvec / np.maximum(rho, 1e-300)[:, None], 0.0)
         return th, a, rho, hu
 
