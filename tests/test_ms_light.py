@@ -97,7 +97,7 @@ def test_photons_order_one_is_the_analytic_single_scattering(seed):
     acc = ms.photons.trace(KT, G, 2_000_000, seed, 16, 1, ALB, from_order=1)[0]
     per = np.array([ms.upsample(r)[glow].sum() for r in acc[:, 1] * ALB])
     # order 1 lit through the front wall: the camera tracer's mirror connections
-    mirror = _sums(ms._camera_orders(KT, G, seed, ALB, 1), 1, glow)
+    mirror = _sums(ms._camera_orders(((KT, G),), seed, ALB, 1)[0], 1, glow)
     mean, se = per.mean(), per.std(ddof=1) / 4
     expected = order1[glow].sum() + mirror.mean()
     assert se < 0.01 * mean

@@ -261,8 +261,12 @@ class MultipleScattering:
         same random numbers (camera paths: one trace per point; photons: one trace, reweighted
         to each point), padded to one number of orders."""
         points = [(float(kappa_t), float(g))] + [(float(a), float(b)) for a, b in variants]
-        cam_max = max_order if self.photons is None else min(max_order, LIGHT_FROM_ORDER - 1)
-        runs = [self._camera_orders(kt, gg, seed, rr_albedo, cam_max) for kt, gg in points]
+        if self.photons is None:  # a spot: every order from camera paths, one trace per point
+            runs = [self._camera_orders(((kt, gg),), seed, rr_albedo, max_order)[0]
+                    for kt, gg in points]
+        else:  # a bulb's orders 1-2: one trace, reweighted to the other points (stop 38)
+            runs = self._camera_orders(points, seed, rr_albedo,
+                                       min(max_order, LIGHT_FROM_ORDER - 1))
         if self.photons is not None:
             lights = self.photons.trace(points[0][0], points[0][1], self.n_paths * self.tracer.n_pix,
                                         int(seed), self.batches, max_order, rr_albedo,
@@ -274,14 +278,15 @@ class MultipleScattering:
         return [np.pad(r[:, : last + 1], ((0, 0), (0, max(0, last + 1 - r.shape[1])), (0, 0)))
                 for r in runs]
 
-    def _camera_orders(self, kt: float, g: float, seed: int, rr_albedo: float, max_order: int
-                       ) -> np.ndarray:
-        """The camera paths' per-batch, per-order means (orders up to ``max_order``)."""
-        acc, entered = self.tracer.trace(float(kt), float(g), self.n_paths, int(seed),
-                                         self.batches, max_order, rr_albedo)
+    def _camera_orders(self, points, seed: int, rr_albedo: float, max_order: int
+                       ) -> list[np.ndarray]:
+        """The camera paths' per-batch, per-order means (orders up to ``max_order``) at each
+        (kappa_t, g) of ``points``, from the first point's paths (``PathTracer.trace_at``)."""
+        accs, entered = self.tracer.trace_at(points, self.n_paths, int(seed), self.batches,
+                                             max_order, rr_albedo)
         with np.errstate(divide="ignore", invalid="ignore"):
             per_batch = np.where(entered > 0, entered / self.batches, np.inf)
-        return acc[:, : max_order + 1] / per_batch
+        return [acc[:, : max_order + 1] / per_batch for acc in accs]
 
     def smoothed(self, per: np.ndarray) -> np.ndarray:
         """Gaussian smoothing (sigma ``smooth`` sample pixels) of each row of ``per`` (n, h*w),

@@ -420,11 +420,15 @@ class SingleScattering:
         self._cap_cells = None
         self._table = None
 
-    def _line_integrals(self, kt: np.ndarray, g: np.ndarray) -> np.ndarray:
+    def _line_integrals(self, kt: np.ndarray, g: np.ndarray, nodes_for: int | None = None
+                        ) -> np.ndarray:
         """int p exp(-kt (d+s)) (source factor) dphi per ray and channel, shape (N, C).
 
-        For the bulb p is the cap average pbar (log pbar from the cap table)."""
-        panels = self._frozen if self._frozen is not None else self._nodes(kt, g)
+        For the bulb p is the cap average pbar (log pbar from the cap table).  Unless frozen,
+        the nodes suit every channel (the narrowest peak's), or only channel ``nodes_for``
+        (the camera paths' points: the first one's value is then that of it alone)."""
+        sel = slice(None) if nodes_for is None else slice(nodes_for, nodes_for + 1)
+        panels = self._frozen if self._frozen is not None else self._nodes(kt[sel], g[sel])
         total = np.zeros((len(self._h), len(kt)))
         tables = None
         need = max((p[2].size for p in panels), default=0)
