@@ -258,8 +258,8 @@ class MultipleScattering:
                   seed: int = 0, rr_albedo: float = 1.0, max_order: int = 400
                   ) -> list[np.ndarray]:
         """:meth:`orders` at (kappa_t, g) and at each (kappa_t, g) of ``variants``, with the
-        same random numbers (camera paths: one trace per point; photons: one trace, reweighted
-        to each point), padded to one number of orders."""
+        same random numbers (one trace, reweighted to each point; a spot's camera paths: one
+        trace per point), padded to one number of orders."""
         points = [(float(kappa_t), float(g))] + [(float(a), float(b)) for a, b in variants]
         if self.photons is None:  # a spot: every order from camera paths, one trace per point
             runs = [self._camera_orders(((kt, gg),), seed, rr_albedo, max_order)[0]
@@ -461,8 +461,9 @@ class FullTransport:
         self.leave_out: int | None = None
 
     def refresh(self, kappa_a, kappa_s, g, brightness=None) -> None:
-        """Rebuild the local model at these parameters (arrays of shape (C,)); 3 traces per
-        scattering channel."""
+        """Rebuild the local model at these parameters (arrays of shape (C,)); per scattering
+        channel one camera-path and one photon trace, reweighted to the finite-difference
+        points (a spot: one camera-path trace per point)."""
         c = len(self.channels)
         ka, ks, gg, _ = check_render_args(c, kappa_a, kappa_s, g,
                                           1.0 if brightness is None else brightness)
