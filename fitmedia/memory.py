@@ -68,13 +68,25 @@ def memory_limit() -> float | None:
     return gb * 2.0**30
 
 
+def default_workers(n_channels: int) -> int:
+    """Channels fitted at once by default: all of them where there are cores for them, and
+    where there are more channels than cores, still all of them up to two per core
+    (time-sliced: three channels on two cores finish together, where two processes took
+    two channels one after the other and left a core idle for the third; since 2026-12-05,
+    stop 38, docs/inference.md "Speed"), else one per core."""
+    cores = os.cpu_count() or 1
+    if n_channels <= cores or cores < 2:
+        return max(1, min(n_channels, cores))
+    return min(n_channels, 2 * cores)
+
+
 def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
                   tracer: bool | None = None) -> float:
     """Estimated peak memory in bytes of ``command`` ('synth' or 'fit') on ``spec``.
 
     synth renders one image at a time (its peak does not grow with the images); fit counts
     the spec's images, each with its own camera size.  ``workers``: channels fitted at once
-    (default: as many as cores, at most the channels).  ``tracer``: whether the multiple-
+    (default: :func:`default_workers`).  ``tracer``: whether the multiple-
     scattering tracer runs (``TRACER_MB`` per process); default: for ``fit``, yes (bulb or
     spot); for ``synth``, no (pass True for ``--model hybrid``)."""
     if tracer is None:
@@ -87,7 +99,7 @@ def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
     files = sum(len(e.paths) * p for e, p in zip(spec.images, sizes))
     if spec.clear_water is not None:
         files += len(spec.clear_water.paths) * spec.camera.width * spec.camera.height
-    par = workers or min(len(spec.channels), os.cpu_count() or 1)
+    par = workers or default_workers(len(spec.channels))
     return (FIT_BASE_MB * _MB + FIT_PER_PIXEL_FILE * float(files)
             + FIT_PER_PIXEL_MODEL * float(sum(sizes)) * par + (CHAIN_BYTES + trace) * par)
 

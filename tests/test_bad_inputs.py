@@ -294,3 +294,21 @@ def test_every_subprocess_case_is_in_the_corpus():
     """The names in SUBPROCESS_CASES are corpus cases (a renamed case would silently move to
     the in-process runs); reference: the case table."""
     assert SUBPROCESS_CASES <= {c.name for c in corpus.cases()}
+
+
+@pytest.mark.parametrize("cores, channels, expected", [(2, 3, 3), (2, 4, 4), (2, 5, 4), (2, 1, 1),
+                                                       (1, 3, 1), (16, 3, 3), (None, 3, 1)])
+def test_default_workers_and_the_memory_estimate_agree(monkeypatch, cores, channels, expected):
+    """The channels fitted at once by default (fitmedia.memory.default_workers): all of them
+    up to two per core where there are more channels than cores (three channels on two cores
+    finish together instead of leaving a core idle for the third: docs/inference.md), one
+    process on one core; and the fit's memory estimate counts that many processes."""
+    from fitmedia.memory import default_workers, estimate_peak
+    from fitmedia.spec import parse_spec
+    from conftest import geometry_dict
+
+    monkeypatch.setattr("os.cpu_count", lambda: cores)
+    assert default_workers(channels) == expected
+    spec = parse_spec(geometry_dict(width=64, height=48), require_images=False)
+    n = len(spec.channels)
+    assert estimate_peak(spec, "fit") == estimate_peak(spec, "fit", workers=default_workers(n))

@@ -487,7 +487,7 @@ class FullTransport:
         # the term's Monte Carlo variance at the refresh point, unit brightness
         # (render_with_variance: what it changes by away from there; a spot has none)
         self._var0 = None if self.ms.photons is None else \
-            self.ms_part(ka, ks, gg, np.ones(c), excess=True)[2]
+            self.ms_part(ka, ks, gg, np.ones(c), excess=True, variance=False)[2]
 
     def needs_refresh(self, kappa_a, kappa_s, g, tol: float = 0.1) -> bool:
         """True when no local model exists or (log kappa_t, atanh g) of a scattering channel
@@ -504,14 +504,17 @@ class FullTransport:
                 return True
         return False
 
-    def ms_part(self, kappa_a, kappa_s, g, brightness, *, excess: bool = False) -> tuple:
+    def ms_part(self, kappa_a, kappa_s, g, brightness, *, excess: bool = False,
+                variance: bool = True) -> tuple:
         """The multiple-scattering image and its Monte Carlo variance, both (H, W, C), from
         the local model (the variance is that of the refresh point's estimate at this
         albedo, with the noise of the finite differences, which each batch has of its own).
         ``excess``: a third image, the part of that variance that shifts a fit
         (``render_with_variance``): the term's own variance at this albedo plus twice its
         covariance with each finite difference times the step, without the finite
-        differences' own variance (which only flattens the local model away from its point)."""
+        differences' own variance (which only flattens the local model away from its point)).
+        ``variance`` False: the second image is left at 0 (``render_with_variance`` does not
+        use it)."""
         c = len(self.channels)
         ka, ks, gg, br = check_render_args(c, kappa_a, kappa_s, g, brightness)
         if self._local is None:
@@ -532,9 +535,10 @@ class FullTransport:
             per = sum(h * x for h, x in zip(steps, parts))
             n = per.shape[0]
             mean = np.clip(per.mean(axis=0), 0.0, None)
-            err = per.std(axis=0, ddof=1) / math.sqrt(n)
             img[..., k] = (self.ms.upsample(mean) * br[k]).reshape(self.shape)
-            var[..., k] = ((self.ms.upsample_err(err) * br[k]) ** 2).reshape(self.shape)
+            if variance:
+                err = per.std(axis=0, ddof=1) / math.sqrt(n)
+                var[..., k] = ((self.ms.upsample_err(err) * br[k]) ** 2).reshape(self.shape)
             if excess:
                 # at the camera's pixels, each batch's deviation interpolated: a camera pixel
                 # between sample pixels mixes their independent errors, and its variance is
@@ -560,7 +564,7 @@ class FullTransport:
         albedo)."""
         if self.ms.photons is None:
             return self.render(kappa_a, kappa_s, g, brightness), None
-        img, _, exc = self.ms_part(kappa_a, kappa_s, g, brightness, excess=True)
+        img, _, exc = self.ms_part(kappa_a, kappa_s, g, brightness, excess=True, variance=False)
         br = check_render_args(len(self.channels), kappa_a, kappa_s, g, brightness)[3]
         var0 = self._var0 * br ** 2
         return (self.single.render(kappa_a, kappa_s, g, brightness) + img,

@@ -20,6 +20,7 @@ from ..errors import InputError
 from ..geometry import project
 from ..images import LoadedImage, checks, load_entry
 from ..images.noise import entry_noise, noise_summary
+from ..memory import default_workers
 from ..spec import CHANNELS, Spec
 from .likelihood import ChannelProblem, Observation
 from .optimize import MapResult, find_map
@@ -749,7 +750,7 @@ def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | Non
     ``forward``: a forward-model factory (:func:`_model`; picklable for the processes)."""
     jobs = [channel_args(prep, ch, options, checkpoint_dir, identity, forward)
             for ch in prep.spec.channels]
-    workers = options.workers or min(len(jobs), os.cpu_count() or 1)
+    workers = options.workers or default_workers(len(jobs))
     if workers <= 1 or len(jobs) == 1:
         return {j[1]: fit_channel(*j) for j in jobs}
     with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork"),
