@@ -522,7 +522,7 @@ class PathTracer:
         def add(order, values):  # values (paths, points)
             cell = batch[ids] * self.n_pix + pix[ids]
             for j, acc in enumerate(accs):
-                w = wgt * values[:, j] if j == 0 else wgt * ratio[:, j] * values[:, j]
+                w = wgt * ratio[:, j] * values[:, j]  # ratio[:, 0] is 1: as a lone trace
                 acc[:, order, :] += np.bincount(cell, weights=w, minlength=batches * self.n_pix
                                                 ).reshape(batches, -1)
 

@@ -267,7 +267,6 @@ class MultipleScattering:
         else:  # a bulb's orders 1-2: one trace, reweighted to the other points (stop 38)
             runs = self._camera_orders(points, seed, rr_albedo,
                                        min(max_order, LIGHT_FROM_ORDER - 1))
-        if self.photons is not None:
             lights = self.photons.trace(points[0][0], points[0][1], self.n_paths * self.tracer.n_pix,
                                         int(seed), self.batches, max_order, rr_albedo,
                                         from_order=LIGHT_FROM_ORDER, variants=tuple(points[1:]))
