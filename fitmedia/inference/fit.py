@@ -295,18 +295,28 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     if options.mcmc:
         out.update(_sample_channel(problem, space, res, alt, other_mode, options, rng,
                                    checkpoint, [seed, CHANNELS.index(channel)], channel, identity))
-        if transport.get("ms_term_cov") is not None:
+        term = _term_error(transport)
+        if term is not None:
             from .full import convolve_samples
 
-            out["samples"] = convolve_samples(out["samples"], transport["ms_term_cov"],
+            out["samples"] = convolve_samples(out["samples"], term,
                                               np.random.default_rng([seed, CHANNELS.index(channel), 6]))
     return out
 
 
+def _term_error(transport: dict) -> np.ndarray | None:
+    """The covariance of the full-transport term's error in the values: its realisation (the
+    jackknife, inference/full.py: term_jackknife) plus the offset that may remain after the
+    last refreshes (``offset_budget``); None where the fit has neither."""
+    parts = [c for c in (transport.get("ms_term_cov"), transport.get("ms_offset_cov"))
+             if c is not None]
+    return sum(parts[1:], parts[0]) if parts else None
+
+
 def _with_term_error(cov: np.ndarray | None, transport: dict) -> np.ndarray | None:
-    """The Laplace covariance plus the full-transport term's realisation error (its jackknife
-    covariance, inference/full.py: term_jackknife), where the fit has one."""
-    term = transport.get("ms_term_cov")
+    """The Laplace covariance plus the full-transport term's error (``_term_error``), where
+    the fit has one."""
+    term = _term_error(transport)
     return cov if cov is None or term is None else cov + term
 
 
@@ -449,8 +459,9 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     (``full_other_mode_map``, its MapResult with the log posterior that puts it its measured
     distance below the MAP, for ``other_g_mode`` and the sampler: :func:`fit_channel`).
     Returns the MAP and ``fit_channel``'s fields."""
-    from .full import (distance_sd, more_paths, ms_images, ms_share, refine_map, restart_shift,
-                       seed_shift, term_jackknife, use_full_transport, use_single_scattering)
+    from .full import (distance_sd, more_paths, ms_images, ms_share, offset_budget, refine_map,
+                       restart_shift, seed_shift, term_jackknife, use_full_transport,
+                       use_single_scattering)
 
     ms_seed, check_seed = _ms_seeds(seed, channel)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
@@ -490,7 +501,7 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                full_converged=info.converged and last.converged, ms_term_cov=term_cov,
                ms_restart_shift_sd=restart_sd,
                ms_restart_values={"kappa_t": float(other.kappa_t), "g": float(other.g)},
-               ms_seed_shift_sd=shift, ms_final_paths=paths,
+               ms_seed_shift_sd=shift, ms_final_paths=paths, ms_offset_cov=offset_budget(res, loop_x),
                ms_final_move_sd=distance_sd(problem, res, loop_x, term_cov),
                ms_final_move={"kappa_t": float(np.exp(res.x[0] - loop_x[0]) - 1.0),
                               "g": float(np.tanh(res.x[2]) - np.tanh(loop_x[2]))},

@@ -84,6 +84,13 @@ RESTART_REFRESHES = 4
 #: offset at the truth"); 1: no such stage
 FINAL_PATHS_FACTOR = 16
 FINAL_REFRESHES = 3
+#: the share of the last refreshes' move that may remain as an offset of the values
+#: (``offset_budget``): with the offset falling as paths^-p, 16^-p / (1 - 16^-p) of the move
+#: from 256 to 4096 paths remains at 4096; 1/3 is p = 1/2.  Measured (docs/inference.md, "The
+#: offset left after the last refreshes"): p about 0.58 (a remainder of about a quarter of the
+#: move) in R of the bench's 200 x 150 milk capture, no remainder beyond the noise in its G,
+#: p about 0.7 at the truth at 100 x 75
+OFFSET_SHARE = 1.0 / 3.0
 #: the jackknife's finite-difference step, in posterior sd of each coordinate
 JACKKNIFE_STEP_SD = 0.1
 #: the jackknife holds logit albedo where its Laplace sd exceeds this: the albedo on its
@@ -555,6 +562,20 @@ def more_paths(problem: ChannelProblem, space: ParameterSpace, res: MapResult, *
             paths = ms.n_paths
     new, info = refine_map(problem, space, res, max_refresh=max_refresh)
     return new, info, paths
+
+
+def offset_budget(res: MapResult, loop_x: np.ndarray) -> np.ndarray:
+    """Covariance (P, P), in the sampler's coordinates, of the offset that the term's own
+    noise may still give the MAP ``res`` after the last refreshes (``more_paths``) moved it
+    from the loop's fixed point ``loop_x``: rank one along that move, its sd ``OFFSET_SHARE``
+    of it.  The offset's sign is known (the move's), its size only within the measured fall
+    with the paths, so it enters the values' error as a symmetric budget of that size, not as
+    a correction.  logit albedo is left out where it is on its plateau (Laplace sd above
+    ``ALBEDO_HELD_SD``; its moves there are not the offset: ``_newton_covariance``)."""
+    d = OFFSET_SHARE * (np.asarray(res.x, float) - np.asarray(loop_x, float))
+    if res.cov is None or not res.cov[1, 1] <= ALBEDO_HELD_SD ** 2:
+        d[1] = 0.0
+    return np.outer(d, d)
 
 
 def ms_images(problem: ChannelProblem, u: np.ndarray) -> list[np.ndarray] | None:

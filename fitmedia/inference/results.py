@@ -101,7 +101,9 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
                 "midpoints": f.get("full_midpoints"),
                 "extrapolated": f.get("full_extrapolated"),
                 "seed_shift_sd": f["ms_seed_shift_sd"],
-                "term_sd": _term_sd(f), "restart_shift_sd": f.get("ms_restart_shift_sd"),
+                "term_sd": _term_sd(f),
+                "offset_sd": _term_sd(f, "ms_offset_cov"),
+                "restart_shift_sd": f.get("ms_restart_shift_sd"),
                 "restart_values": f.get("ms_restart_values"),
                 "final_paths": f.get("ms_final_paths"), "final_move": f.get("ms_final_move"),
                 "final_move_sd": f.get("ms_final_move_sd"),
@@ -113,11 +115,13 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
     return info
 
 
-def _term_sd(f: dict) -> dict | None:
+def _term_sd(f: dict, key: str = "ms_term_cov") -> dict | None:
     """The sd of the values' error from the multiple-scattering term's own Monte Carlo
     realisation (its jackknife, inference/full.py), per coordinate of the sampler (log
-    kappa_t, logit albedo, atanh g, ...); None where it could not be measured."""
-    cov = f.get("ms_term_cov")
+    kappa_t, logit albedo, atanh g, ...); None where it could not be measured.  With ``key``
+    ``ms_offset_cov``: that of the offset that may remain after the last refreshes
+    (inference/full.py: offset_budget)."""
+    cov = f.get(key)
     if cov is None:
         return None
     return {n: float(np.sqrt(max(v, 0.0))) for n, v in zip(f["names"], np.diag(cov))}

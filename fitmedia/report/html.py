@@ -397,6 +397,8 @@ def _ms_section(results: dict) -> str:
         ("Last refreshes: paths per sample pixel", lambda i, c: _cell(i.get("final_paths"))),
         ("Their move: &kappa;<sub>t</sub> [relative], g", lambda i, c: _final_move_cell(
             i.get("final_move"))),
+        ("Offset that may remain: sd of log &kappa;<sub>t</sub>, atanh g",
+         lambda i, c: _term_sd_cell(i.get("offset_sd"))),
     ]
     rows = [[label] + [get(info, c) for c, info in ms.items()] for label, get in fields]
     rows = [r for r in rows if any(x != "&mdash;" for x in r[1:])]
@@ -409,7 +411,8 @@ def _ms_section(results: dict) -> str:
               "intervals) gives it; a second fit far from the first means the images do not "
               "decide between them; the last refreshes trace more paths, which removes most of "
               "the offset the term's own noise gives the values, and their move is how far "
-              "that went (docs/inference.md); with single scattering, the rise of "
+              "that went; a third of that move may remain, and is in the intervals as the "
+              "offset's sd (docs/inference.md); with single scattering, the rise of "
               "&chi;&sup2;/pixel is what the term would cause were it in the images, which the "
               "misfit guard sees only where it is well above the guard's room (docs/results.md, "
               "'The single-scattering check').</p>\n")
