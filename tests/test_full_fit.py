@@ -522,6 +522,37 @@ def test_offset_budget_is_a_third_of_the_last_move_along_it():
     assert _with_term_error(cov, {}) is cov
 
 
+def test_more_paths_multiplies_the_paths_and_traces_a_coarse_grid_finer(monkeypatch):
+    """inference/full.py's more_paths, its wiring: every Monte Carlo model traces
+    FINAL_PATHS_FACTOR times its paths, one on sample pixels coarser than FINAL_MAX_BIN is
+    rebinned to it (bin 4 at the canonical 200 x 150: its upsampling's bias, measured in
+    docs/inference.md), one at or below it keeps its grid, and the refreshes then start from
+    the MAP given (refine_map, stubbed here: the refreshes are tested above)."""
+    from fitmedia.inference import full
+
+    class Model:
+        def __init__(self, b):
+            self.ms = SimpleNamespace(bin=b, n_paths=256)
+
+        def rebin(self, b):
+            self.ms.bin = b
+
+    problem = SimpleNamespace(obs=[SimpleNamespace(model=Model(4)), SimpleNamespace(model=Model(2)),
+                                   SimpleNamespace(model=object())])
+    seen = {}
+
+    def refine(problem_, space, res, max_refresh):
+        seen.update(start=res, max_refresh=max_refresh)
+        return res, full.FullFitInfo()
+
+    monkeypatch.setattr(full, "refine_map", refine)
+    start = MapResult(np.zeros(3), 0.0, 1, None)
+    _, _, paths = full.more_paths(problem, None, start)
+    assert paths == FINAL_PATHS_FACTOR * 256 and seen["start"] is start
+    assert [o.model.ms.bin for o in problem.obs[:2]] == [full.FINAL_MAX_BIN, 2]
+    assert all(o.model.ms.n_paths == FINAL_PATHS_FACTOR * 256 for o in problem.obs[:2])
+
+
 def test_spot_scan_finds_the_multiple_scattering_a_single_fit_absorbed(tmp_path):
     """A spot has no direct view of its light, so nothing but the glow pins kappa_t, and the
     single-scattering fit of a capture holding multiple scattering can take that light for a

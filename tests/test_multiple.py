@@ -358,6 +358,28 @@ def test_full_transport_local_model(seed):
     assert total.sum() == pytest.approx(single.sum() + base, rel=1e-9)
 
 
+def test_rebin_traces_as_a_model_built_at_that_bin(seed):
+    """FullTransport.rebin (the last refreshes' finer grid, inference/full.py FINAL_MAX_BIN)
+    against a second model built at that bin from the start (the same seed, paths and
+    batches): after a refresh their term and its variance agree exactly; the coarse model's
+    own term differs (another grid), and the local model is dropped until the refresh."""
+    spec = make_spec(width=32, height=24)
+    kt, a, g = MILK["kt"], MILK["albedo"], MILK["g"]
+    medium = ([kt * (1 - a)], [kt * a], [g])
+    coarse = FullTransport(spec, None, channels=("G",), bin=4, n_paths=32, batches=8, seed=seed)
+    coarse.refresh(*medium)
+    before, _ = coarse.ms_part(*medium, [1.0])
+    coarse.rebin(2)
+    assert coarse.ms.bin == 2 and coarse.ms.n_paths == 32 and coarse._local is None
+    fine = FullTransport(spec, None, channels=("G",), bin=2, n_paths=32, batches=8, seed=seed)
+    for m in (coarse, fine):
+        m.refresh(*medium)
+    (t1, v1), (t2, v2) = coarse.ms_part(*medium, [1.0]), fine.ms_part(*medium, [1.0])
+    np.testing.assert_array_equal(t1, t2)
+    np.testing.assert_array_equal(v1, v2)
+    assert not np.array_equal(before, t1)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("case, n_paths", [("Lowfat Milk 16 ml", 256), ("Espresso 8 ml", 96),
                                            ("Lowfat Milk 64 ml", 256)])

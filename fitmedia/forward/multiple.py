@@ -459,6 +459,17 @@ class FullTransport:
         #: inference/full.py: term_jackknife), or None for all of them
         self.leave_out: int | None = None
 
+    def rebin(self, bin: int) -> None:
+        """Trace the term on sample pixels of ``bin`` x ``bin`` camera pixels from the next
+        ``refresh`` on, with the same paths per sample pixel, batches, smoothing and seed; the
+        local model is dropped (``render`` refreshes by itself without one)."""
+        old = self.ms
+        if int(bin) == old.bin:
+            return
+        self.ms = MultipleScattering(old.spec, old._image_index, channels=self.channels, bin=bin,
+                                     n_paths=old.n_paths, batches=old.batches, smooth=old.smooth)
+        self._local, self._var0 = None, None
+
     def refresh(self, kappa_a, kappa_s, g, brightness=None) -> None:
         """Rebuild the local model at these parameters (arrays of shape (C,)); per scattering
         channel one camera-path and one photon trace, reweighted to the finite-difference
