@@ -522,6 +522,28 @@ def test_offset_budget_is_a_third_of_the_last_move_along_it():
     assert _with_term_error(cov, {}) is cov
 
 
+def test_restart_is_judged_in_units_of_the_loops_own_precision():
+    """inference/full.py's restart_in_loop_units against its definition: the largest distance
+    of log kappa_t and atanh g between the restart's end and the loop's fixed point, each in
+    units of sqrt(Laplace + the loop's jackknife + the last refreshes' move squared); with no
+    move it is distance_sd's (the yardstick until 2026-12-06), and a move of the loop's
+    fixed point many times its sd makes a restart within that move no longer a reason."""
+    from fitmedia.inference.full import distance_sd, restart_in_loop_units
+    from fitmedia.trust import RESTART_SD
+
+    cov = np.diag([1e-4, 0.04, 4e-4, 1e-6])
+    jack = np.diag([0.5e-4, 0.0, 1e-4, 0.0])
+    loop = MapResult(np.array([np.log(14.7), 0.5, np.arctanh(0.892), 0.0]), 0.0, 1, cov)
+    restart_x = loop.x + np.array([-0.055, 0.3, -0.024, 0.0])
+    plain = distance_sd(None, loop, restart_x, jack)
+    assert plain == pytest.approx(0.055 / np.sqrt(1.5e-4)) and plain > RESTART_SD
+    assert restart_in_loop_units(None, loop, restart_x, jack, loop.x) == pytest.approx(plain)
+    final_x = loop.x + np.array([0.046, 0.1, 0.05, 0.01])
+    judged = restart_in_loop_units(None, loop, restart_x, jack, final_x)
+    expect = max(0.055 / np.sqrt(1.5e-4 + 0.046**2), 0.024 / np.sqrt(5e-4 + 0.05**2))
+    assert judged == pytest.approx(expect) and judged < RESTART_SD
+
+
 def test_more_paths_multiplies_the_paths_and_traces_a_coarse_grid_finer(monkeypatch):
     """inference/full.py's more_paths, its wiring: every Monte Carlo model traces
     FINAL_PATHS_FACTOR times its paths, one on sample pixels coarser than FINAL_MAX_BIN is

@@ -460,8 +460,8 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     distance below the MAP, for ``other_g_mode`` and the sampler: :func:`fit_channel`).
     Returns the MAP and ``fit_channel``'s fields."""
     from .full import (distance_sd, more_paths, ms_images, ms_share, offset_budget, refine_map,
-                       restart_shift, seed_shift, term_jackknife, use_full_transport,
-                       use_single_scattering)
+                       restart_in_loop_units, restart_shift, seed_shift, term_jackknife,
+                       use_full_transport, use_single_scattering)
 
     ms_seed, check_seed = _ms_seeds(seed, channel)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
@@ -484,11 +484,10 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                                                               single_x, alt)
     # the checks on the loop's fixed point, at the loop's paths
     term_cov = term_jackknife(problem, res)
-    restart_sd, restart_x = restart_shift(problem, space, res, single_x, term_cov)
-    other = space.to_params(restart_x)
+    _, restart_x = restart_shift(problem, space, res, single_x, term_cov)
     shift = seed_shift(problem, space, res, spec, channel, seed=check_seed, term_cov=term_cov)
     # then the last refreshes with more paths, and the values and their term error from there
-    loop_x = res.x
+    loop, loop_term, loop_x = res, term_cov, res.x
     res, last, paths = more_paths(problem, space, res)
     term_cov = term_jackknife(problem, res)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
@@ -499,8 +498,8 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                full_midpoints=info.midpoints + last.midpoints,
                full_extrapolated=info.extrapolated + last.extrapolated,
                full_converged=info.converged and last.converged, ms_term_cov=term_cov,
-               ms_restart_shift_sd=restart_sd,
-               ms_restart_values={"kappa_t": float(other.kappa_t), "g": float(other.g)},
+               ms_restart_shift_sd=restart_in_loop_units(problem, loop, restart_x, loop_term, res.x),
+               ms_restart_values={"kappa_t": float(np.exp(restart_x[0])), "g": float(np.tanh(restart_x[2]))},
                ms_seed_shift_sd=shift, ms_final_paths=paths, ms_offset_cov=offset_budget(res, loop_x),
                ms_final_move_sd=distance_sd(problem, res, loop_x, term_cov),
                ms_final_move={"kappa_t": float(np.exp(res.x[0] - loop_x[0]) - 1.0),
