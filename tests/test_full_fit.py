@@ -546,21 +546,26 @@ def test_restart_is_judged_in_units_of_the_loops_own_precision():
 
 def test_more_paths_multiplies_the_paths_and_traces_a_coarse_grid_finer(monkeypatch):
     """inference/full.py's more_paths, its wiring: every Monte Carlo model traces
-    FINAL_PATHS_FACTOR times its paths, one on sample pixels coarser than FINAL_MAX_BIN is
-    rebinned to it (bin 4 at the canonical 200 x 150: its upsampling's bias, measured in
-    docs/inference.md), one at or below it keeps its grid, and the refreshes then start from
-    the MAP given (refine_map, stubbed here: the refreshes are tested above)."""
+    FINAL_PATHS_FACTOR times its paths; one traced coarser than final_bin's grid of about
+    FINAL_TRACE_WIDTH x FINAL_TRACE_HEIGHT sample pixels is rebinned to it (the loop's bin 4
+    at the canonical 200 x 150 to 2, its bin 2 at 100 x 75 to 1: the upsampling's bias,
+    measured in docs/inference.md), one already that fine keeps its grid; the refreshes then
+    start from the MAP given (refine_map, stubbed here: the refreshes are tested above)."""
     from fitmedia.inference import full
 
     class Model:
-        def __init__(self, b):
-            self.ms = SimpleNamespace(bin=b, n_paths=256)
+        def __init__(self, w, h, b):
+            self.ms = SimpleNamespace(bin=b, n_paths=256, camera=SimpleNamespace(width=w, height=h))
 
         def rebin(self, b):
             self.ms.bin = b
 
-    problem = SimpleNamespace(obs=[SimpleNamespace(model=Model(4)), SimpleNamespace(model=Model(2)),
-                                   SimpleNamespace(model=object())])
+    models = [Model(200, 150, full.trace_bin(SimpleNamespace(width=200, height=150))),
+              Model(100, 75, full.trace_bin(SimpleNamespace(width=100, height=75))),
+              Model(16, 12, 1)]
+    assert [m.ms.bin for m in models] == [4, 2, 1]
+    problem = SimpleNamespace(obs=[SimpleNamespace(model=m) for m in models]
+                              + [SimpleNamespace(model=object())])
     seen = {}
 
     def refine(problem_, space, res, max_refresh):
@@ -571,8 +576,8 @@ def test_more_paths_multiplies_the_paths_and_traces_a_coarse_grid_finer(monkeypa
     start = MapResult(np.zeros(3), 0.0, 1, None)
     _, _, paths = full.more_paths(problem, None, start)
     assert paths == FINAL_PATHS_FACTOR * 256 and seen["start"] is start
-    assert [o.model.ms.bin for o in problem.obs[:2]] == [full.FINAL_MAX_BIN, 2]
-    assert all(o.model.ms.n_paths == FINAL_PATHS_FACTOR * 256 for o in problem.obs[:2])
+    assert [m.ms.bin for m in models] == [2, 1, 1]
+    assert all(m.ms.n_paths == FINAL_PATHS_FACTOR * 256 for m in models)
 
 
 def test_spot_scan_finds_the_multiple_scattering_a_single_fit_absorbed(tmp_path):

@@ -359,7 +359,7 @@ def test_full_transport_local_model(seed):
 
 
 def test_rebin_traces_as_a_model_built_at_that_bin(seed):
-    """FullTransport.rebin (the last refreshes' finer grid, inference/full.py FINAL_MAX_BIN)
+    """FullTransport.rebin (the last refreshes' finer grid, inference/full.py final_bin)
     against a second model built at that bin from the start (the same seed, paths and
     batches): after a refresh their term and its variance agree exactly; the coarse model's
     own term differs (another grid), and the local model is dropped until the refresh."""

@@ -84,12 +84,13 @@ RESTART_REFRESHES = 4
 #: offset at the truth"); 1: no such stage
 FINAL_PATHS_FACTOR = 16
 FINAL_REFRESHES = 3
-#: ... on sample pixels of at most this many camera pixels each way (``trace_bin`` gives 4 at
-#: the canonical 200 x 150): with the term fixed at the truth (4096 paths per sample pixel)
-#: the upsampling from bin 4 left kappa_t -2.4 % and g -0.002 in R of a 200 x 150 milk
-#: capture (3-4 posterior sd), bin 2 -0.2 % and -0.0003 (docs/inference.md, "The offset left
-#: after the last refreshes")
-FINAL_MAX_BIN = 2
+#: ... on a grid of about this many sample pixels (``final_bin``; the loop's ``trace_bin``
+#: grid is half as fine each way): with the term fixed at the truth (4096 paths per sample
+#: pixel) the upsampling from the loop's grid left kappa_t -2.4 % and g -0.002 in R of a Lowfat
+#: Milk 16 ml capture, at 200 x 150 (bin 4) and at 100 x 75 (bin 2) alike, 2-4 posterior sd;
+#: this grid (bin 2 and bin 1) -0.2 % and +0.1 % (docs/inference.md, "The offset left after
+#: the last refreshes")
+FINAL_TRACE_WIDTH, FINAL_TRACE_HEIGHT = 96, 72
 #: the share of the last refreshes' move that may remain as an offset of the values
 #: (``offset_budget``): with the offset falling as paths^-p, 16^-p / (1 - 16^-p) of the move
 #: from 256 to 4096 paths remains at 4096; 1/3 is p = 1/2.  Measured (docs/inference.md, "The
@@ -229,6 +230,12 @@ def trace_bin(cam) -> int:
     """Camera pixels per traced sample pixel (each way): a grid of about ``TRACE_WIDTH`` x
     ``TRACE_HEIGHT`` sample pixels."""
     return max(1, round(min(cam.width / TRACE_WIDTH, cam.height / TRACE_HEIGHT)))
+
+
+def final_bin(cam) -> int:
+    """Camera pixels per sample pixel (each way) of the last refreshes (``more_paths``): a
+    grid of about ``FINAL_TRACE_WIDTH`` x ``FINAL_TRACE_HEIGHT`` sample pixels."""
+    return max(1, round(min(cam.width / FINAL_TRACE_WIDTH, cam.height / FINAL_TRACE_HEIGHT)))
 
 
 def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult, *,
@@ -572,8 +579,8 @@ def more_paths(problem: ChannelProblem, space: ParameterSpace, res: MapResult, *
     loop's fixed point is offset by the term's own noise (kappa_t and g low by up to a few
     posterior sd; the offset falls with the paths, and at 16 times them it was within a third
     of an sd: docs/inference.md); the sampler then runs on this local model, whose cost does
-    not depend on the paths.  A term traced on sample pixels of more than ``FINAL_MAX_BIN``
-    camera pixels each way is traced on that finer grid from now on (its upsampling's bias).
+    not depend on the paths.  A term traced on a grid coarser than ``final_bin``'s is traced
+    on that finer grid from now on (the coarse grid's upsampling leaves a bias).
     Returns the MAP, what the refreshes did, and the paths per sample pixel now traced."""
     paths = 0
     for o in problem.obs:
@@ -581,8 +588,8 @@ def more_paths(problem: ChannelProblem, space: ParameterSpace, res: MapResult, *
         if ms is not None and hasattr(ms, "n_paths"):
             ms.n_paths = int(ms.n_paths * max(int(factor), 1))
             paths = ms.n_paths
-            if ms.bin > FINAL_MAX_BIN and hasattr(o.model, "rebin"):
-                o.model.rebin(FINAL_MAX_BIN)
+            if hasattr(o.model, "rebin") and final_bin(ms.camera) < ms.bin:
+                o.model.rebin(final_bin(ms.camera))
     new, info = refine_map(problem, space, res, max_refresh=max_refresh)
     return new, info, paths
 
