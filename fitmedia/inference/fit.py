@@ -308,9 +308,10 @@ def _term_error(transport: dict) -> np.ndarray | None:
     """The covariance of the full-transport term's error in the values: its realisation (the
     jackknife, inference/full.py: term_jackknife) plus the offset that may remain after the
     last refreshes (``offset_budget``); None where the fit has neither."""
-    parts = [c for c in (transport.get("ms_term_cov"), transport.get("ms_offset_cov"))
-             if c is not None]
-    return sum(parts[1:], parts[0]) if parts else None
+    term, offset = transport.get("ms_term_cov"), transport.get("ms_offset_cov")
+    if term is None:
+        return offset
+    return term if offset is None else term + offset
 
 
 def _with_term_error(cov: np.ndarray | None, transport: dict) -> np.ndarray | None:
@@ -487,7 +488,7 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     _, restart_x = restart_shift(problem, space, res, single_x, term_cov)
     shift = seed_shift(problem, space, res, spec, channel, seed=check_seed, term_cov=term_cov)
     # then the last refreshes with more paths, and the values and their term error from there
-    loop, loop_term, loop_x = res, term_cov, res.x
+    loop, loop_term = res, term_cov
     res, last, paths = more_paths(problem, space, res)
     term_cov = term_jackknife(problem, res)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
@@ -500,10 +501,10 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                full_converged=info.converged and last.converged, ms_term_cov=term_cov,
                ms_restart_shift_sd=restart_in_loop_units(problem, loop, restart_x, loop_term, res.x),
                ms_restart_values={"kappa_t": float(np.exp(restart_x[0])), "g": float(np.tanh(restart_x[2]))},
-               ms_seed_shift_sd=shift, ms_final_paths=paths, ms_offset_cov=offset_budget(res, loop_x),
-               ms_final_move_sd=distance_sd(problem, res, loop_x, term_cov),
-               ms_final_move={"kappa_t": float(np.exp(res.x[0] - loop_x[0]) - 1.0),
-                              "g": float(np.tanh(res.x[2]) - np.tanh(loop_x[2]))},
+               ms_seed_shift_sd=shift, ms_final_paths=paths, ms_offset_cov=offset_budget(res, loop.x),
+               ms_final_move_sd=distance_sd(problem, res, loop.x, term_cov),
+               ms_final_move={"kappa_t": float(np.exp(res.x[0] - loop.x[0]) - 1.0),
+                              "g": float(np.tanh(res.x[2]) - np.tanh(loop.x[2]))},
                ms_images=ms_images(problem, res.x))
     if other_g is not None:  # relative to the final MAP (fit_channel: other_g_mode)
         alt_full.log_posterior = res.log_posterior + other_g["delta_log_posterior"]

@@ -226,16 +226,16 @@ def _on_edge(space: ParameterSpace, x: np.ndarray, lo: np.ndarray, hi: np.ndarra
                or (hi[j] - x[j] < tol and hi[j] < space.upper[j]) for j in (0, 2))
 
 
-def trace_bin(cam) -> int:
-    """Camera pixels per traced sample pixel (each way): a grid of about ``TRACE_WIDTH`` x
-    ``TRACE_HEIGHT`` sample pixels."""
-    return max(1, round(min(cam.width / TRACE_WIDTH, cam.height / TRACE_HEIGHT)))
+def trace_bin(cam, width: int = TRACE_WIDTH, height: int = TRACE_HEIGHT) -> int:
+    """Camera pixels per traced sample pixel (each way): a grid of about ``width`` x
+    ``height`` sample pixels (the loop's, ``TRACE_WIDTH`` x ``TRACE_HEIGHT``, by default)."""
+    return max(1, round(min(cam.width / width, cam.height / height)))
 
 
 def final_bin(cam) -> int:
     """Camera pixels per sample pixel (each way) of the last refreshes (``more_paths``): a
     grid of about ``FINAL_TRACE_WIDTH`` x ``FINAL_TRACE_HEIGHT`` sample pixels."""
-    return max(1, round(min(cam.width / FINAL_TRACE_WIDTH, cam.height / FINAL_TRACE_HEIGHT)))
+    return trace_bin(cam, FINAL_TRACE_WIDTH, FINAL_TRACE_HEIGHT)
 
 
 def refine_map(problem: ChannelProblem, space: ParameterSpace, start: MapResult, *,
@@ -588,8 +588,9 @@ def more_paths(problem: ChannelProblem, space: ParameterSpace, res: MapResult, *
         if ms is not None and hasattr(ms, "n_paths"):
             ms.n_paths = int(ms.n_paths * max(int(factor), 1))
             paths = ms.n_paths
-            if hasattr(o.model, "rebin") and final_bin(ms.camera) < ms.bin:
-                o.model.rebin(final_bin(ms.camera))
+            finer = final_bin(ms.camera)
+            if hasattr(o.model, "rebin") and finer < ms.bin:
+                o.model.rebin(finer)
     new, info = refine_map(problem, space, res, max_refresh=max_refresh)
     return new, info, paths
 
