@@ -296,11 +296,14 @@ def test_every_subprocess_case_is_in_the_corpus():
     assert SUBPROCESS_CASES <= {c.name for c in corpus.cases()}
 
 
-@pytest.mark.parametrize("cores, channels, expected", [(2, 3, 2), (2, 1, 1), (1, 3, 1),
+@pytest.mark.parametrize("cores, channels, expected", [(2, 3, 3), (2, 1, 1), (1, 3, 1),
+                                                       (2, 4, 2), (1, 2, 1),
                                                        (16, 3, 3), (None, 3, 1)])
 def test_default_workers_and_the_memory_estimate_agree(monkeypatch, cores, channels, expected):
     """The channels fitted at once by default (fitmedia.memory.default_workers): one process
-    per channel up to the cores; and the fit's memory estimate counts that many processes
+    per channel where there are fewer channels than twice the cores (3 on 2: all at once, so
+    that none runs alone at the end), else one per core; and the fit's memory estimate counts
+    that many processes
     (it refuses a fit up front by that figure)."""
     from fitmedia.memory import default_workers, estimate_peak
     from fitmedia.spec import parse_spec

@@ -491,19 +491,22 @@ def test_term_jackknife_holds_an_albedo_on_its_plateau(rng):
 
 def test_offset_budget_is_a_third_of_the_last_move_along_it():
     """inference/full.py's offset_budget against its definition and the power law it stands
-    for: an offset falling as paths^-p leaves 16^-p / (1 - 16^-p) of the move from 256 to
-    4096 paths at 4096, which is OFFSET_SHARE at p = 1/2 and less for the faster falls measured
-    (p 0.58-0.7); the budget is rank one along the move with that sd per coordinate, leaves
+    for: an offset falling as paths^-p leaves F^-p / (1 - F^-p) of the move from 256 to
+    F x 256 paths (F = FINAL_PATHS_FACTOR) at F x 256, which is OFFSET_SHARE at p = 1/2 (1/3
+    at F = 16, 0.55 at F = 8) and less for the faster falls measured (p 0.58-1); the budget
+    is rank one along the move with that sd per coordinate, leaves
     out logit albedo on its plateau (Laplace sd above ALBEDO_HELD_SD), and fit's
     _with_term_error adds it to the Laplace covariance with the jackknife's."""
     from fitmedia.inference.fit import _with_term_error
     from fitmedia.inference.full import ALBEDO_HELD_SD, offset_budget
 
-    def remaining_share(p):  # offset(4096) / (offset(256) - offset(4096)) for c * paths^-p
-        return 4096.0 ** -p / (256.0 ** -p - 4096.0 ** -p)
+    def remaining_share(p):  # offset(F 256) / (offset(256) - offset(F 256)) for c * paths^-p
+        n = 256.0 * FINAL_PATHS_FACTOR
+        return n ** -p / (256.0 ** -p - n ** -p)
 
     assert remaining_share(0.5) == pytest.approx(OFFSET_SHARE)
-    assert remaining_share(0.58) < 0.8 * OFFSET_SHARE and remaining_share(0.7) < 0.55 * OFFSET_SHARE
+    assert FINAL_PATHS_FACTOR != 16 or OFFSET_SHARE == pytest.approx(1.0 / 3.0)
+    assert remaining_share(0.58) < 0.8 * OFFSET_SHARE and remaining_share(1.0) < 0.5 * OFFSET_SHARE
     loop_x = np.array([np.log(14.6), 0.5, np.arctanh(0.890), 0.0])
     final_x = np.array([np.log(15.3), 0.8, np.arctanh(0.901), 0.01])
     cov = np.diag([1e-4, 0.04, 1e-4, 1e-6])

@@ -81,8 +81,13 @@ RESTART_REACH = 0.5
 RESTART_REFRESHES = 4
 #: the last refreshes trace the term with this many times its paths (``more_paths``): the
 #: MAP's offset from the term's own noise falls with the paths (docs/inference.md, "The g
-#: offset at the truth"); 1: no such stage
-FINAL_PATHS_FACTOR = 16
+#: offset at the truth"); 1: no such stage.  8 since 2026-12-06 (16 before): with the term
+#: built at the truth on the last refreshes' grid (R of a 200 x 150 Lowfat Milk 16 ml capture,
+#: docs/studies/ms_shared_error.py) kappa_t was -1.3 % low at 1024 paths per sample pixel,
+#: -0.66 +- 0.23 % at 2048 (8 x 256) and -0.19 +- 0.27 % at 4096 (16 x 256), about 1 and 0.3
+#: posterior sd; 16 made the bench's full fit 18.5 min against issue 15's 15, its last
+#: refreshes 78 % of a channel's full-transport time (docs/inference.md, "Speed")
+FINAL_PATHS_FACTOR = 8
 FINAL_REFRESHES = 3
 #: ... on a grid of about this many sample pixels (``final_bin``; the loop's ``trace_bin``
 #: grid is half as fine each way): with the term fixed at the truth (4096 paths per sample
@@ -92,12 +97,15 @@ FINAL_REFRESHES = 3
 #: the last refreshes")
 FINAL_TRACE_WIDTH, FINAL_TRACE_HEIGHT = 96, 72
 #: the share of the last refreshes' move that may remain as an offset of the values
-#: (``offset_budget``): with the offset falling as paths^-p, 16^-p / (1 - 16^-p) of the move
-#: from 256 to 4096 paths remains at 4096; 1/3 is p = 1/2.  Measured (docs/inference.md, "The
-#: offset left after the last refreshes"): p about 0.58 (a remainder of about a quarter of the
-#: move) in R of the bench's 200 x 150 milk capture, no remainder beyond the noise in its G,
-#: p about 0.7 at the truth at 100 x 75
-OFFSET_SHARE = 1.0 / 3.0
+#: (``offset_budget``): with the offset falling as paths^-p, F^-p / (1 - F^-p) of the move
+#: from the loop's paths to F = ``FINAL_PATHS_FACTOR`` times them remains; p = 1/2
+#: (``OFFSET_FALL``) gives 1/3 at F = 16 and 0.55 at F = 8.  Measured (docs/inference.md, "The
+#: offset left after the last refreshes"): p about 0.58 (a remainder of about a quarter of
+#: the move from 256 to 4096 paths) in R of the bench's 200 x 150 milk capture, no remainder
+#: beyond the noise in its G, p about 0.7 at the truth at 100 x 75, and about 1 at the truth
+#: on the last refreshes' grid at 200 x 150 (1024 -> 2048 paths); p = 1/2 is below them all
+OFFSET_FALL = 0.5
+OFFSET_SHARE = FINAL_PATHS_FACTOR ** -OFFSET_FALL / (1.0 - FINAL_PATHS_FACTOR ** -OFFSET_FALL)
 #: the jackknife's finite-difference step, in posterior sd of each coordinate
 JACKKNIFE_STEP_SD = 0.1
 #: the jackknife holds logit albedo where its Laplace sd exceeds this: the albedo on its
