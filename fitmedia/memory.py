@@ -75,7 +75,8 @@ def default_workers(n_channels: int) -> int:
     the others idle; all at once, time-sliced, keeps every core busy to the end.  Measured on
     the bench's full fit (200 x 150 x 3 on 2 cores): at stop 38, 737 s wall against 767 s with
     2 processes (5 % more CPU, 1.5 x the memory); on 2026-12-06, when the last channel ran
-    alone for 400 of 1110 s, ... (docs/inference.md, "Speed")."""
+    alone for about 400 of 1110 s, 1055 s against 1110 s (2083 s CPU against 1950 s;
+    docs/inference.md, "Speed")."""
     cores = os.cpu_count() or 1
     return max(1, n_channels if n_channels < 2 * cores else cores)
 

@@ -140,8 +140,8 @@ SEED_SHIFT_Z = 3.0
 #: a second full-transport fit started beyond the MAP (inference/full.py: restart_shift) that
 #: ends more than this many sd (Laplace plus the term's jackknife) away: two fixed points
 RESTART_SD = 3.0
-#: the last refreshes, at 16 times the paths (inference/full.py: more_paths), move the values
-#: from the loop's fixed point by most of the offset the term's own noise gave it; a third of
+#: the last refreshes, at 8 times the paths (inference/full.py: more_paths), move the values
+#: from the loop's fixed point by most of the offset the term's own noise gave it; a share of
 #: that move may remain (inference/full.py: ``OFFSET_SHARE``), and is in the intervals as a
 #: budget along the move (``offset_budget``; until 2026-12-06 a move beyond 1.5 sd was a
 #: reason instead, which every 100 x 75 and 200 x 150 milk fit gave).  That share rests on

@@ -371,7 +371,7 @@ def test_auto_switches_on_a_mitsuba_milk_capture(tmp_path):
     # the last refreshes traced FINAL_PATHS_FACTOR times the paths, and say how far they moved
     assert ms["final_paths"] == FINAL_PATHS_FACTOR * DEFAULT_PATHS
     assert set(ms["final_move"]) == {"kappa_t", "g"} and np.isfinite(ms["final_move_sd"])
-    # ... and a third of that move is in the intervals as the offset that may remain
+    # ... and OFFSET_SHARE of that move is in the intervals as the offset that may remain
     assert ms["offset_sd"]["log_kappa_t"] == pytest.approx(
         OFFSET_SHARE * abs(np.log1p(ms["final_move"]["kappa_t"])), rel=1e-6)
     assert ms["refreshes"] == len(ms["moves_sd"]) == len(ms["moves_term_units"])

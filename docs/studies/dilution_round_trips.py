@@ -8,7 +8,10 @@ the defaults.  Prints one markdown row per fit: errors of the posterior median a
 truth (R / G / B; ``*`` where the truth is outside the central 90 % interval), chi2/pixel,
 exit code with its reasons, wall time.  Resumable: a capture or fit already in OUT is kept.
 
-Run: python docs/studies/dilution_round_trips.py OUT   (about 80 min on 2 cores)
+Run: python docs/studies/dilution_round_trips.py OUT [CASES]   (about 80 min on 2 cores)
+CASES: ``4x10x`` (default, the 8 cases below), ``2006`` (the 2006 dilutions of Lowfat Milk,
+Espresso and White Grapefruit Juice; Regular Milk 60 ml is beyond the full model), or a
+comma-separated list of case indices into the 4x10x list.
 """
 from __future__ import annotations
 
@@ -25,6 +28,8 @@ ROOT = Path(__file__).resolve().parents[2]
 CASES = [("Lowfat Milk", 4, 41), ("Espresso", 2, 42), ("White Grapefruit Juice", 40, 43),
          ("Regular Milk", 15, 44), ("Lowfat Milk", 1.6, 45), ("Espresso", 0.8, 46),
          ("White Grapefruit Juice", 16, 47), ("Regular Milk", 6, 48)]
+#: the 2006 dilutions (Narasimhan et al. 2006's table) of three of them
+CASES_2006 = [("Lowfat Milk", 16, 51), ("Espresso", 8, 52), ("White Grapefruit Juice", 160, 53)]
 #: short names for the reasons in results.json's trust
 REASONS = (("does not describe", "misfit"), ("did not settle", "unsettled"),
            ("second full-transport", "restart"), ("paths per", "last refreshes"),
@@ -64,12 +69,21 @@ def row(d: Path, model: str, rc: int, wall: float) -> str:
             f"{rc}{' (' + ', '.join(why) + ')' if why else ''} | {wall:.0f} s |")
 
 
+def cases(which: str) -> list[tuple[str, float, int]]:
+    """The cases named by the command line's CASES argument (module docstring)."""
+    if which == "2006":
+        return CASES_2006
+    if which == "4x10x":
+        return CASES
+    return [CASES[int(i)] for i in which.split(",")]
+
+
 def main():
     out = Path(sys.argv[1])
     out.mkdir(parents=True, exist_ok=True)
     geo = geometry(out)
     fm = [sys.executable, "-m", "fitmedia.cli"]
-    for liquid, ml, seed in CASES:
+    for liquid, ml, seed in cases(sys.argv[2] if len(sys.argv) > 2 else "4x10x"):
         d = out / f"{liquid.replace(' ', '_')}_{ml:g}"
         if not (d / "cap" / "capture.yaml").exists():
             subprocess.run(fm + ["synth", str(geo), "--medium", liquid, "--ml", str(ml), "--out",

@@ -411,7 +411,7 @@ def _ms_section(results: dict) -> str:
               "intervals) gives it; a second fit far from the first means the images do not "
               "decide between them; the last refreshes trace more paths, which removes most of "
               "the offset the term's own noise gives the values, and their move is how far "
-              "that went; a third of that move may remain, and is in the intervals as the "
+              "that went; a share of that move may remain, and is in the intervals as the "
               "offset's sd (docs/inference.md); with single scattering, the rise of "
               "&chi;&sup2;/pixel is what the term would cause were it in the images, which the "
               "misfit guard sees only where it is well above the guard's room (docs/results.md, "
