@@ -68,7 +68,7 @@ def memory_limit() -> float | None:
     return gb * 2.0**30
 
 
-def default_workers(n_channels: int) -> int:
+def default_workers(n_channels: int, spec: Spec | None = None) -> int:
     """Channels fitted at once by default: every channel in its own process where there are
     fewer channels than twice the cores, else one per core.  Where the channels do not divide
     evenly over the cores (3 on 2), one per core leaves the last channel alone on one core while
@@ -76,9 +76,17 @@ def default_workers(n_channels: int) -> int:
     the bench's full fit (200 x 150 x 3 on 2 cores): at stop 38, 737 s wall against 767 s with
     2 processes (5 % more CPU, 1.5 x the memory); on 2026-12-06, when the last channel ran
     alone for about 400 of 1110 s, 1055 s against 1110 s (2083 s CPU against 1950 s;
-    docs/inference.md, "Speed")."""
+    docs/inference.md, "Speed").  With ``spec``: more processes than cores only where the
+    fit's memory estimate for them is within :func:`memory_limit` (each process holds its own
+    models and tracer), so that a machine that fits one process per core is not refused."""
     cores = os.cpu_count() or 1
-    return max(1, n_channels if n_channels < 2 * cores else cores)
+    base = max(1, min(n_channels, cores))
+    over = max(1, n_channels if n_channels < 2 * cores else cores)
+    if over > base and spec is not None:
+        limit = memory_limit()
+        if limit is not None and estimate_peak(spec, "fit", workers=over) > limit:
+            return base
+    return over
 
 
 def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
@@ -100,7 +108,7 @@ def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
     files = sum(len(e.paths) * p for e, p in zip(spec.images, sizes))
     if spec.clear_water is not None:
         files += len(spec.clear_water.paths) * spec.camera.width * spec.camera.height
-    par = workers or default_workers(len(spec.channels))
+    par = workers or default_workers(len(spec.channels), spec)
     return (FIT_BASE_MB * _MB + FIT_PER_PIXEL_FILE * float(files)
             + FIT_PER_PIXEL_MODEL * float(sum(sizes)) * par + (CHAIN_BYTES + trace) * par)
 

@@ -313,4 +313,25 @@ def test_default_workers_and_the_memory_estimate_agree(monkeypatch, cores, chann
     assert default_workers(channels) == expected
     spec = parse_spec(geometry_dict(width=64, height=48), require_images=False)
     n = len(spec.channels)
-    assert estimate_peak(spec, "fit") == estimate_peak(spec, "fit", workers=default_workers(n))
+    assert estimate_peak(spec, "fit") == estimate_peak(spec, "fit", workers=default_workers(n, spec))
+
+
+def test_default_workers_stay_one_per_core_where_more_would_not_fit_in_memory(monkeypatch):
+    """More processes than cores (3 channels on 2 cores) only where the memory estimate for
+    them is within the limit: with FITMEDIA_MAX_MEMORY_GB between the estimates for 2 and 3
+    processes, the default is 2 and the fit is not refused (check_memory); above both, 3.
+    Reference: estimate_peak at an explicit worker count, the limit set between its values."""
+    from fitmedia.memory import ENV_LIMIT, check_memory, default_workers, estimate_peak
+    from fitmedia.spec import parse_spec
+    from conftest import geometry_dict
+
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    spec = parse_spec(geometry_dict(width=64, height=48), require_images=False)
+    assert len(spec.channels) == 3
+    two, three = (estimate_peak(spec, "fit", workers=w) for w in (2, 3))
+    assert two < three
+    monkeypatch.setenv(ENV_LIMIT, str((two + three) / 2 / 2**30))
+    assert default_workers(3, spec) == 2 and default_workers(3) == 3
+    check_memory(spec, "fit")  # not refused: one process per core fits
+    monkeypatch.setenv(ENV_LIMIT, str(1.01 * three / 2**30))
+    assert default_workers(3, spec) == 3

@@ -761,7 +761,7 @@ def run_channels(prep: Prepared, options: FitOptions, checkpoint_dir: Path | Non
     ``forward``: a forward-model factory (:func:`_model`; picklable for the processes)."""
     jobs = [channel_args(prep, ch, options, checkpoint_dir, identity, forward)
             for ch in prep.spec.channels]
-    workers = options.workers or default_workers(len(jobs))
+    workers = options.workers or default_workers(len(jobs), prep.spec)
     if workers <= 1 or len(jobs) == 1:
         return {j[1]: fit_channel(*j) for j in jobs}
     with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork"),
