@@ -313,7 +313,8 @@ def test_default_workers_and_the_memory_estimate_agree(monkeypatch, cores, chann
     assert default_workers(channels) == expected
     spec = parse_spec(geometry_dict(width=64, height=48), require_images=False)
     n = len(spec.channels)
-    assert estimate_peak(spec, "fit") == estimate_peak(spec, "fit", workers=default_workers(n, spec))
+    assert estimate_peak(spec, "fit") == estimate_peak(spec, "fit",
+                                                       workers=default_workers(n, spec))
 
 
 def test_default_workers_stay_one_per_core_where_more_would_not_fit_in_memory(monkeypatch):

@@ -587,8 +587,9 @@ def more_paths(problem: ChannelProblem, space: ParameterSpace, res: MapResult, *
     loop's fixed point is offset by the term's own noise (kappa_t and g low by up to a few
     posterior sd; the offset falls with the paths: at 8 times them, with the term built at the
     truth, about 1 posterior sd and at 16 times 0.3: docs/inference.md); the sampler then
-    runs on this local model, whose cost does not depend on the paths.  A term traced on a grid coarser than ``final_bin``'s is traced
-    on that finer grid from now on (the coarse grid's upsampling leaves a bias).
+    runs on this local model, whose cost does not depend on the paths.  A term traced on a
+    grid coarser than ``final_bin``'s is traced on that finer grid from now on (the coarse
+    grid's upsampling leaves a bias).
     Returns the MAP, what the refreshes did, and the paths per sample pixel now traced."""
     paths = 0
     for o in problem.obs:
