@@ -19,6 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .inference.fit import OTHER_MODE_DELTA
+from .inference.summary import summarise
 
 #: Tail probability of the noise-only chi2 distribution that the guard tolerates.
 CHI2_TAIL = 1e-6
@@ -334,16 +335,14 @@ def _log_width90(x: np.ndarray) -> float | None:
     return float(np.log(q95 / q05)) if q05 > 0 else None
 
 
-def reduced_from_samples(kappa_s: np.ndarray, g: np.ndarray, map_kappa_s: float, map_g: float
-                         ) -> tuple[dict, float | None]:
+def reduced_from_samples(kappa_s: np.ndarray, g: np.ndarray, map_kappa_s: float, map_g: float,
+                         weights: np.ndarray | None = None) -> tuple[dict, float | None]:
     """kappa_s' = kappa_s (1 - g) from posterior samples: its summary (``map``, ``median``,
-    ``mean``, ``std``, ``q05`` ... ``q95``; ``source: "samples"``) and the ratio of the 90 %
+    ``mean``, ``std``, ``q05`` ... ``q95``, the intervals the envelope with ``weights`` as in
+    ``inference.summary.summarise``; ``source: "samples"``) and the ratio of the 90 %
     interval widths of log kappa_s' and log kappa_s (None where kappa_s reaches 0)."""
     red = np.asarray(kappa_s) * (1.0 - np.asarray(g))
-    q = np.percentile(red, [5, 16, 50, 84, 95])
-    out = {"map": float(map_kappa_s * (1.0 - map_g)), "median": float(q[2]),
-           "mean": float(np.mean(red)), "std": float(np.std(red)), "q05": float(q[0]),
-           "q16": float(q[1]), "q84": float(q[3]), "q95": float(q[4]), "source": "samples"}
+    out = {**summarise(red, map_kappa_s * (1.0 - map_g), weights), "source": "samples"}
     w_s, w_r = _log_width90(np.asarray(kappa_s)), _log_width90(red)
     ratio = w_r / w_s if w_s and w_r is not None else None
     return out, ratio
@@ -447,8 +446,14 @@ def value_line(results: dict, ch: str) -> str:
         return (f"  {ch}: kappa_t={_value(p['kappa_t'][ch], key)} kappa_s'=kappa_s(1-g)="
                 f"{value:.4g}{interval}; kappa_s, g and kappa_a = kappa_t - kappa_s not "
                 f"separately measured {what}")
-    return (f"  {ch}: kappa_a={_value(p['kappa_a'][ch], key)} "
-            f"kappa_s={_value(p['kappa_s'][ch], key)} g={_value(p['g'][ch], key, '.3f')} {what}")
+    ka = p["kappa_a"][ch]
+    if info.get("kappa_a_upper_limit_only") is True and "q95" in ka:  # not resolved: a limit
+        ka_text = (f"kappa_a<{ka['q95']:.4g} (95 % upper limit; "
+                   f"kappa_t={_value(p['kappa_t'][ch], key)})")
+    else:
+        ka_text = f"kappa_a={_value(ka, key)}"
+    return (f"  {ch}: {ka_text} kappa_s={_value(p['kappa_s'][ch], key)} "
+            f"g={_value(p['g'][ch], key, '.3f')} {what}")
 
 
 def model_lines(results: dict) -> list[str]:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .inference.fit import FitOptions
+from .inference.summary import weighted_cdf
 from .medium import Medium
 from .regimes import INFORMATIVE_OPTICAL_DEPTH, REGIMES, regime, tank_optical_depths
 from .spec import Spec
@@ -49,6 +50,9 @@ class Score:
     #: results.json's ``trust.ok`` of the fit (False: ``fitmedia fit`` exited 1 and said the
     #: values cannot be trusted); None for scores recorded before it was kept
     trusted: bool | None = None
+    #: the truth's quantile as results.json's intervals see it (:func:`envelope_pit`; they are
+    #: an envelope over the albedo prior's halves since 2026-12-06); None: ``pit``'s
+    pit_envelope: float | None = None
 
     @classmethod
     def from_record(cls, d: dict) -> Score:
@@ -73,9 +77,10 @@ class Score:
         return float(norm.isf(min(max(self.pit, PIT_CLIP), 1.0 - PIT_CLIP)))
 
     def inside(self, level: float) -> bool:
-        """Is the truth inside the central ``level`` credible interval?"""
+        """Is the truth inside the central ``level`` interval that results.json gives?"""
         tail = 0.5 * (1 - level)
-        return tail <= self.pit <= 1 - tail
+        pit = self.pit if self.pit_envelope is None else self.pit_envelope
+        return tail <= pit <= 1 - tail
 
     def describe(self) -> str:
         return (f"{self.medium} {'+'.join(f'{m:g}' for m in self.ml)} ml {self.channel} "
@@ -128,6 +133,8 @@ def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str,
     with np.load(fit_dir / "samples.npz") as samples:
         for ch in result.channels:
             tau = optical_depths(spec, truth, ch) if spec is not None else None
+            key = f"{ch}/uniform_albedo_weight"  # absent in fits made before 2026-12-06
+            w = samples[key] if key in samples.files else None
             for q in SCORED:
                 if q in _FROM_SAMPLES:
                     s = _FROM_SAMPLES[q](lambda n: samples[f"{ch}/{n}"])
@@ -136,8 +143,25 @@ def score_fit(fit_dir: str | Path, truth: Medium, ml: list[float], *, name: str,
                     s, t = samples[f"{ch}/{q}"], values[q][ch]
                 scores.append(Score(name, tuple(ml), ch, q, t, float(np.median(s)),
                                     float(np.std(s)), float(np.mean(s < t)), tau,
-                                    normal_score(s, t, q), trusted))
+                                    normal_score(s, t, q), trusted, envelope_pit(s, t, w)))
     return scores
+
+
+def envelope_pit(samples: np.ndarray, truth: float, weights: np.ndarray | None = None) -> float:
+    """The truth's posterior quantile (the fraction of ``samples`` below it) as results.json's
+    intervals see it.  With ``weights`` (the albedo prior's uniform half) those intervals are
+    the envelope of the samples' own and the reweighted samples' (``inference.summary``), so
+    of the two quantiles (the reweighted one by ``weighted_cdf``) the one nearer 0.5, and 0.5
+    where they lie on either side of it.  ``Score.inside`` reads it: true exactly where the
+    envelope holds the truth."""
+    s = np.asarray(samples, float)
+    own = float(np.mean(s < truth))
+    if weights is None:
+        return own
+    other = weighted_cdf(s, weights, truth)
+    if (own - 0.5) * (other - 0.5) <= 0.0:
+        return 0.5
+    return own if abs(own - 0.5) < abs(other - 0.5) else other
 
 
 def normal_score(samples: np.ndarray, truth: float, quantity: str) -> float | None:

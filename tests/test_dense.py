@@ -76,3 +76,24 @@ def test_cli_line_prints_kappa_s_reduced_when_not_separable():
     assert "kappa_t=7.1 [6.9, 7.3]" in line
     assert "not separately measured" in line and "kappa_s=" not in line and " g=" not in line
     assert "kappa_a=" not in line
+
+
+def test_cli_line_prints_an_unresolved_kappa_a_as_an_upper_limit():
+    """Where kappa_a is not resolved (``kappa_a_upper_limit_only``: its median is the prior's),
+    `fitmedia fit`'s line gives kappa_a as its 95 % upper limit and kappa_t with its interval,
+    not a median that reads like a measurement; resolved, kappa_a's median and interval."""
+    res = {"channels": ["B"],
+           "parameters": {"kappa_a": {"B": {"map": 0.02, "median": 1.5e-4, "q05": 4e-7,
+                                            "q95": 0.066}},
+                          "kappa_s": {"B": {"map": 0.74, "median": 0.742, "q05": 0.727,
+                                            "q95": 0.757}},
+                          "g": {"B": {"map": 0.57, "median": 0.566, "q05": 0.549, "q95": 0.583}},
+                          "kappa_t": {"B": {"map": 0.77, "median": 0.745, "q05": 0.729,
+                                            "q95": 0.818}}},
+           "diagnostics": {"channels": {"B": {"kappa_a_upper_limit_only": True}}}}
+    line = trust.value_line(res, "B")
+    assert "kappa_a<0.066 (95 % upper limit; kappa_t=0.745 [0.729, 0.818])" in line
+    assert "kappa_a=" not in line and "0.00015" not in line
+    res["diagnostics"]["channels"]["B"]["kappa_a_upper_limit_only"] = False
+    line = trust.value_line(res, "B")
+    assert "kappa_a=0.00015 [4e-07, 0.066]" in line and "upper limit" not in line

@@ -128,6 +128,17 @@ class ParameterSpace:
         a = expit(u1)
         return np.log(self._alb_flat + self._alb_unif * a * (1.0 - a))
 
+    def uniform_albedo_weights(self, u1) -> np.ndarray:
+        """Importance weights that turn samples drawn under the albedo mixture
+        (:meth:`log_albedo_prior`) into samples under its uniform-in-albedo half alone (flat in
+        kappa_a at a given kappa_t): that half's density over the mixture's, at logit albedo
+        ``u1``; normalised to mean 1 over ``u1``."""
+        a = expit(np.asarray(u1, float))
+        unif = self._alb_unif * a * (1.0 - a)
+        w = unif / (self._alb_flat + unif)
+        mean = float(np.mean(w)) if w.size else 0.0
+        return w / mean if mean > 0 else w
+
     def draw_logit_albedo(self, random, n: int) -> np.ndarray:
         """``n`` draws of logit albedo from its prior (the mixture of :meth:`log_albedo_prior`)
         with ``random`` (a numpy RandomState or Generator)."""

@@ -19,15 +19,7 @@ from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
 from .params import ALBEDO_UNIFORM_WEIGHT
 from .result import QUANTITIES, FitResult
-
-
-def summarise(samples: np.ndarray | None, map_value: float) -> dict:
-    out = {"map": float(map_value)}
-    if samples is not None and len(samples):
-        q = np.percentile(samples, [5, 16, 50, 84, 95])
-        out.update(median=float(q[2]), mean=float(np.mean(samples)), std=float(np.std(samples)),
-                   q05=float(q[0]), q16=float(q[1]), q84=float(q[3]), q95=float(q[4]))
-    return out
+from .summary import summarise, weighted_percentiles
 
 
 def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions, *,
@@ -41,8 +33,9 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions, *,
         f = fits[ch]
         phys = f["space"].physical_samples(f["samples"]) if "samples" in f else {}
         samples.update({f"{ch}/{q}": v for q, v in phys.items()})
+        weights = albedo_weights(f)
         for q in QUANTITIES:
-            params[q][ch] = summarise(phys.get(q), f["map"][q])
+            params[q][ch] = summarise(phys.get(q), f["map"][q], weights)
         # optical depth light-to-wall per image, from the posterior median (else MAP) kappa_t
         kt = params["kappa_t"][ch].get("median", params["kappa_t"][ch]["map"])
         taus[ch] = tank_optical_depths(spec, float(kt), CHANNELS.index(ch))
@@ -70,6 +63,24 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions, *,
         images=images, notes=prep.notes, samples=samples or None)
 
 
+def albedo_weights(f: dict) -> np.ndarray | None:
+    """One channel's fit ``f``: the importance weights of its posterior samples under the
+    albedo prior's uniform half (:meth:`ParameterSpace.uniform_albedo_weights`); None without
+    samples."""
+    if "samples" not in f or not len(f["samples"]):
+        return None
+    return f["space"].uniform_albedo_weights(np.asarray(f["samples"])[:, 1])
+
+
+def _envelope_info(f: dict, phys: dict, weights: np.ndarray) -> dict:
+    """``diagnostics.channels.<ch>.albedo_prior_envelope``: the effective sample size of the
+    reweighted samples and, per quantity, the 90 % interval under the uniform half alone."""
+    ess = float(np.sum(weights) ** 2 / np.sum(weights ** 2))
+    uniform = {q: [float(v) for v in weighted_percentiles(phys[q], weights, (5, 95))]
+               for q in QUANTITIES if q in phys}
+    return {"uniform_albedo_ess": ess, "uniform_albedo_90": uniform}
+
+
 def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
                   taus: tuple[float, ...]) -> dict:
     """results.json's ``diagnostics.channels.<ch>``; adds ``kappa_s_reduced`` to ``params``."""
@@ -82,6 +93,7 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
             "other_g_mode": f.get("other_g_mode"), "optical_depth_regime": regime(taus)}
     if "samples" in f:
         info.update(_sampler_info(f, phys, {q: params[q][ch] for q in QUANTITIES}))
+        info["albedo_prior_envelope"] = _envelope_info(f, phys, albedo_weights(f))
     if "model_used" in f:  # --model full / auto (inference/full.py)
         info["model_used"] = f["model_used"]
         info["multiple_scattering"] = {
@@ -206,7 +218,8 @@ def _reduced(f: dict, phys: dict) -> tuple[dict, float | None]:
     """kappa_s' = kappa_s (1 - g) of one channel's fit ``f`` (physical samples ``phys``):
     from the samples, else from the Laplace covariance; and the width ratio (fitmedia.trust)."""
     if "kappa_s" in phys:
-        return reduced_from_samples(phys["kappa_s"], phys["g"], f["map"]["kappa_s"], f["map"]["g"])
+        return reduced_from_samples(phys["kappa_s"], phys["g"], f["map"]["kappa_s"], f["map"]["g"],
+                                    albedo_weights(f))
     return reduced_from_laplace(f["x_map"], f.get("laplace_cov"), f["names"], f["map"]["kappa_s"],
                                 f["map"]["g"])
 
@@ -243,6 +256,7 @@ def write_outputs(out_dir: Path, prep: Prepared, fits: dict[str, dict], result: 
             for q, v in phys.items():
                 samples[f"{ch}/{q}"] = v
             samples[f"{ch}/unconstrained"] = f["samples"]
+            samples[f"{ch}/uniform_albedo_weight"] = albedo_weights(f)
             samples[f"{ch}/log_prob"] = f["log_prob"]
         samples[f"{ch}/map_unconstrained"] = f["x_map"]
     samples["names"] = np.array(fits[spec.channels[0]]["names"])

@@ -528,7 +528,10 @@ def _estimates(results: dict, samples: dict[str, np.ndarray]) -> str:
           "dense medium the images constrain it and &kappa;<sub>t</sub>, not &kappa;<sub>s</sub> "
           "and g on their own (the similarity relation). "
         + ("Median of the posterior with its central 68 % and 90 % intervals; MAP = maximum "
-           "a posteriori." if sampled else
+           "a posteriori. Each interval holds both the posterior's under the albedo prior (half "
+           "flat in log &kappa;<sub>a</sub>, half uniform in the albedo) and the one under its "
+           "uniform half alone: where the images leave &kappa;<sub>a</sub> unresolved, the "
+           "first crowds &kappa;<sub>a</sub> towards 0 (docs/inference.md)." if sampled else
            "No sampler ran: MAP (maximum a posteriori) values only, no intervals.")
         + "</p>\n<table>" + header + "".join(rows) + "</table>\n")
 
