@@ -417,6 +417,34 @@ def not_separable_note(ch: str, reduced: dict) -> str:
             f"kappa_s' = {value:.4g} 1/mm{interval}, not kappa_s and g on their own")
 
 
+def regime_notes(chans: dict[str, dict], images: list[dict]) -> list[str]:
+    """Plain-words notes for the channels too thin or too dense in every image
+    (``optical_depth_regime``, fitmedia/regimes.py), which until 2026-12-06 only the report's
+    channel flags named: there the 100-round validation found kappa_t's (thin) or g's (dense)
+    intervals driven by the prior (docs/validation.md, "Coverage by regime")."""
+    from .regimes import INFORMATIVE_OPTICAL_DEPTH
+
+    lo, hi = INFORMATIVE_OPTICAL_DEPTH
+    notes = []
+    for ch, info in chans.items():
+        if info.get("optical_depth_regime") not in ("thin", "dense"):
+            continue
+        taus = [((im.get("channels") or {}).get(ch) or {}).get("optical_depth_light_to_wall")
+                for im in images]
+        depths = ", ".join("?" if t is None else f"{t:.2g}" for t in taus)
+        if info.get("optical_depth_regime") == "thin":
+            notes.append(f"channel {ch} is too dilute: its optical depth from the light to the "
+                         f"front wall is {depths}, below {lo:g} in every image, and the "
+                         "intervals of kappa_t and kappa_a there follow the prior more than the "
+                         "images (read kappa_a as an upper limit); add liquid to measure them")
+        elif info.get("optical_depth_regime") == "dense":
+            notes.append(f"channel {ch} is too dense: its optical depth from the light to the "
+                         f"front wall is {depths}, above {hi:g} in every image; the light is "
+                         "hidden and g's interval follows the prior more than the images; "
+                         "dilute to measure g")
+    return notes
+
+
 # ---------------------------------------------------------------------------------------------
 # what `fitmedia fit` prints
 

@@ -247,3 +247,22 @@ def test_fit_many_exit_code_carries_the_verdict(monkeypatch, tmp_path, capsys):
     assert main(argv) == 0
     recs.append({"name": "c", "out": "o/c", "status": "failed", "error": "spec: bad"})
     assert main(argv) == 2
+
+
+def test_thin_and_dense_channels_get_a_note():
+    """A channel too thin (or too dense) in every image gets a plain-words note in
+    results.json's trust, which `fitmedia fit` prints, naming its optical depths and what
+    follows the prior there; an informative one gets none; the verdict (exit code) is not
+    changed by it."""
+    from fitmedia.inference.results import assess
+
+    for regime, depth, words in (("thin", 0.062, "too dilute"), ("dense", 14.0, "too dense")):
+        chans, images = _results([1.0])
+        chans["G"]["optical_depth_regime"] = regime
+        images[0]["channels"]["G"]["optical_depth_light_to_wall"] = depth
+        verdict = assess({"kappa_s_reduced": {"G": {"map": 1.0}}}, chans, images, "single")
+        assert verdict["ok"] is True and verdict["reasons"] == []
+        (note,) = verdict["notes"]
+        assert words in note and "channel G" in note and f"{depth:.2g}" in note
+    chans, images = _results([1.0])
+    assert assess({"kappa_s_reduced": {"G": {"map": 1.0}}}, chans, images, "single")["notes"] == []

@@ -13,8 +13,8 @@ from ..version import __version__
 from ..regimes import regime, tank_optical_depths
 from ..spec import CHANNELS
 from ..trust import (log_kappa_s_sd, misfit_checks, not_separable_note, reason_kinds,
-                     reduced_from_laplace, reduced_from_samples, sampler_reasons, separable,
-                     single_scattering_checks, transport_reasons)
+                     reduced_from_laplace, reduced_from_samples, regime_notes, sampler_reasons,
+                     separable, single_scattering_checks, transport_reasons)
 from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
 from .params import ALBEDO_UNIFORM_WEIGHT
@@ -238,7 +238,7 @@ def assess(params: dict, chans: dict[str, dict], images: list[dict], model: str,
         if c["ok"] is False:
             chans[ch]["optical_depth_regime"] = None
     notes = [not_separable_note(ch, params["kappa_s_reduced"][ch]) for ch, info in chans.items()
-             if info.get("kappa_s_g_separable") is False] + ms_notes
+             if info.get("kappa_s_g_separable") is False] + ms_notes + regime_notes(chans, images)
     return {"ok": not reasons, "model": model, "reasons": [str(r) for r in reasons],
             "reason_kinds": reason_kinds(reasons), "notes": notes, "misfit": checks}
 
