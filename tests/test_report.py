@@ -10,8 +10,8 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-from scipy.special import expit
 import pytest
+from scipy.special import expit
 
 from conftest import geometry_dict
 from fitmedia.errors import InputError

@@ -18,6 +18,9 @@ def test_weighted_percentiles_against_numpy():
     rng = np.random.default_rng(3)
     x = rng.normal(size=501)
     assert np.array_equal(weighted_percentiles(x, np.ones_like(x)), np.percentile(x, QUANTILES))
+    # all the weight on the largest sample (a degenerate reweighting): equal weights' positions
+    spike = np.r_[np.zeros(x.size - 1), 1.0][np.argsort(np.argsort(x))]
+    assert np.array_equal(weighted_percentiles(x, spike), np.percentile(x, QUANTILES))
     k = rng.integers(0, 4, size=x.size)
     ref = np.percentile(np.repeat(x, k), QUANTILES)
     gap = np.max(np.diff(np.sort(x)))

@@ -18,6 +18,8 @@ def _weighted_positions(x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.nd
     x, w = np.asarray(x, float), np.asarray(w, float)
     i = np.argsort(x, kind="stable")
     below = np.r_[0.0, np.cumsum(w[i])[:-1]]
+    if not below[-1] > 0:  # no weight below the largest sample: equal weights instead
+        below = np.arange(x.size, dtype=float)
     return x[i], below / below[-1]
 
 
