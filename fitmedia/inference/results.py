@@ -19,7 +19,7 @@ from ..util import save_npz, write_json
 from .fit import FitOptions, Prepared, prior_g_interval_width
 from .params import ALBEDO_UNIFORM_WEIGHT
 from .result import QUANTITIES, FitResult
-from .summary import summarise, weighted_percentiles
+from .summary import kish_ess, summarise, weighted_percentiles
 
 
 def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions, *,
@@ -39,7 +39,7 @@ def build_results(prep: Prepared, fits: dict[str, dict], options: FitOptions, *,
         # optical depth light-to-wall per image, from the posterior median (else MAP) kappa_t
         kt = params["kappa_t"][ch].get("median", params["kappa_t"][ch]["map"])
         taus[ch] = tank_optical_depths(spec, float(kt), CHANNELS.index(ch))
-        chans[ch] = _channel_info(prep, ch, f, phys, params, taus[ch])
+        chans[ch] = _channel_info(prep, ch, f, phys, params, taus[ch], weights)
     images = _image_records(prep, fits, taus)
     name = model or options.model
     used = [chans[c].get("model_used", name) for c in spec.channels]
@@ -72,18 +72,19 @@ def albedo_weights(f: dict) -> np.ndarray | None:
     return f["space"].uniform_albedo_weights(np.asarray(f["samples"])[:, 1])
 
 
-def _envelope_info(f: dict, phys: dict, weights: np.ndarray) -> dict:
+def _envelope_info(phys: dict, weights: np.ndarray) -> dict:
     """``diagnostics.channels.<ch>.albedo_prior_envelope``: the effective sample size of the
     reweighted samples and, per quantity, the 90 % interval under the uniform half alone."""
-    ess = float(np.sum(weights) ** 2 / np.sum(weights ** 2))
+    ess = kish_ess(weights)
     uniform = {q: [float(v) for v in weighted_percentiles(phys[q], weights, (5, 95))]
                for q in QUANTITIES if q in phys}
     return {"uniform_albedo_ess": ess, "uniform_albedo_90": uniform}
 
 
 def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
-                  taus: tuple[float, ...]) -> dict:
-    """results.json's ``diagnostics.channels.<ch>``; adds ``kappa_s_reduced`` to ``params``."""
+                  taus: tuple[float, ...], weights: np.ndarray | None) -> dict:
+    """results.json's ``diagnostics.channels.<ch>``; adds ``kappa_s_reduced`` to ``params``.
+    ``weights``: the samples' :func:`albedo_weights`."""
     chi2, n = f["chi2"]
     info = {"map_log_posterior": f["map_logp"], "n_evals_map": f["n_evals"],
             "chi2_per_pixel": chi2 / max(n, 1), "n_pixels": n,
@@ -93,7 +94,7 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
             "other_g_mode": f.get("other_g_mode"), "optical_depth_regime": regime(taus)}
     if "samples" in f:
         info.update(_sampler_info(f, phys, {q: params[q][ch] for q in QUANTITIES}))
-        info["albedo_prior_envelope"] = _envelope_info(f, phys, albedo_weights(f))
+        info["albedo_prior_envelope"] = _envelope_info(phys, weights)
     if "model_used" in f:  # --model full / auto (inference/full.py)
         info["model_used"] = f["model_used"]
         info["multiple_scattering"] = {
@@ -121,7 +122,7 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
                 "final_move_sd": f.get("ms_final_move_sd"),
                 "other_g_mode": f.get("other_g_mode")}
                if f["model_used"] == "full" else {})}
-    params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys)
+    params.setdefault("kappa_s_reduced", {})[ch], ratio = _reduced(f, phys, weights)
     info.update(kappa_s_reduced_width_ratio=ratio, kappa_s_g_separable=separable(
         ratio, info.get("kappa_s_consistent_with_zero")))
     return info
@@ -214,12 +215,13 @@ def _priors(spec, names: list[str], space) -> dict:
                        if n != "log_brightness"}}
 
 
-def _reduced(f: dict, phys: dict) -> tuple[dict, float | None]:
-    """kappa_s' = kappa_s (1 - g) of one channel's fit ``f`` (physical samples ``phys``):
-    from the samples, else from the Laplace covariance; and the width ratio (fitmedia.trust)."""
+def _reduced(f: dict, phys: dict, weights: np.ndarray | None) -> tuple[dict, float | None]:
+    """kappa_s' = kappa_s (1 - g) of one channel's fit ``f`` (physical samples ``phys``, their
+    :func:`albedo_weights`): from the samples, else from the Laplace covariance; and the width
+    ratio (fitmedia.trust)."""
     if "kappa_s" in phys:
         return reduced_from_samples(phys["kappa_s"], phys["g"], f["map"]["kappa_s"], f["map"]["g"],
-                                    albedo_weights(f))
+                                    weights)
     return reduced_from_laplace(f["x_map"], f.get("laplace_cov"), f["names"], f["map"]["kappa_s"],
                                 f["map"]["g"])
 

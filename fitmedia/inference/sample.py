@@ -11,6 +11,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .summary import kish_ess
+
 
 @dataclass
 class ChainResult:
@@ -290,7 +292,7 @@ def mode_log_mass(log_prob: Callable[[np.ndarray], float], samples: np.ndarray,
     f1 = 1.0 / (s1 * np.exp(l1 - log_r) + s2)
     re2 = np.var(f2) / np.mean(f2) ** 2 / n_draws + np.var(f1) / np.mean(f1) ** 2 / n1
     w = np.exp(l2 - np.max(l2))
-    ess = float(w.sum() ** 2 / np.sum(w ** 2))
+    ess = kish_ess(w)
     return ModeMass(log_r, float(np.sqrt(re2)), ess, n_draws, it)
 
 

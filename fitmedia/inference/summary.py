@@ -11,6 +11,12 @@ import numpy as np
 QUANTILES = (5, 16, 50, 84, 95)
 
 
+def kish_ess(w: np.ndarray) -> float:
+    """Kish's effective sample size of importance weights ``w``: (sum w)^2 / sum w^2."""
+    w = np.asarray(w, float)
+    return float(w.sum() ** 2 / np.sum(w ** 2))
+
+
 def _weighted_positions(x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The samples ``x`` sorted, and each one's position in (0, 1) with importance weights
     ``w``: the weight of those below it over the weight of all but the largest, so that equal
