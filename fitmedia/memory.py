@@ -95,7 +95,7 @@ def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
 
     synth renders one image at a time (its peak does not grow with the images); fit counts
     the spec's images, each with its own camera size.  ``workers``: channels fitted at once
-    (default: :func:`default_workers`).  ``tracer``: whether the multiple-
+    (``--workers``; at most the spec's channels; default: :func:`default_workers`).  ``tracer``: whether the multiple-
     scattering tracer runs (``TRACER_MB`` per process); default: for ``fit``, yes (bulb or
     spot); for ``synth``, no (pass True for ``--model hybrid``)."""
     if tracer is None:
@@ -108,7 +108,8 @@ def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
     files = sum(len(e.paths) * p for e, p in zip(spec.images, sizes))
     if spec.clear_water is not None:
         files += len(spec.clear_water.paths) * spec.camera.width * spec.camera.height
-    par = workers or default_workers(len(spec.channels), spec)
+    # more workers than channels do not run: one process per channel at most
+    par = min(workers, len(spec.channels)) if workers else default_workers(len(spec.channels), spec)
     return (FIT_BASE_MB * _MB + FIT_PER_PIXEL_FILE * float(files)
             + FIT_PER_PIXEL_MODEL * float(sum(sizes)) * par + (CHAIN_BYTES + trace) * par)
 
@@ -120,7 +121,10 @@ def check_memory(spec: Spec, command: str, **kw) -> None:
     need = estimate_peak(spec, command, **kw)
     if limit is not None and need > limit:
         whose = f"${ENV_LIMIT}" if ENV_LIMIT in os.environ else "half the physical memory"
+        par = kw.get("workers")
+        fewer = (f"fewer --workers than {par}, " if command == "fit" and par and par > 1
+                 and len(spec.channels) > 1 else "")
         raise InputError(f"{spec.source}: camera.size {spec.camera.width} x {spec.camera.height}: "
                          f"`{command}` would need about {need / 2**30:.3g} GiB of memory, more "
                          f"than the limit of {limit / 2**30:.3g} GiB ({whose}); use a smaller "
-                         f"camera.size, or set {ENV_LIMIT} (GiB; 0: no check)")
+                         f"camera.size, {fewer}or set {ENV_LIMIT} (GiB; 0: no check)")

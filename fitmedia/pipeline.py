@@ -168,7 +168,7 @@ def fit_capture(capture: Spec | str | Path, *, model: Any = None,
     if options.model not in MODELS:
         raise InputError(f"model: {options.model!r} is not one of {', '.join(MODELS)}, a "
                          "ForwardModel or a factory of them")
-    prep = prepare(spec)
+    prep = prepare(spec, options.workers)
     identity = run_identity(spec, prep.images, prep.clear, options)
     name = None if forward is None else model_name(forward)
     if name is not None:

@@ -336,3 +336,28 @@ def test_default_workers_stay_one_per_core_where_more_would_not_fit_in_memory(mo
     check_memory(spec, "fit")  # not refused: one process per core fits
     monkeypatch.setenv(ENV_LIMIT, str(1.01 * three / 2**30))
     assert default_workers(3, spec) == 3
+
+
+def test_the_memory_check_counts_the_workers_asked_for(monkeypatch, tmp_path, capsys):
+    """`fit --workers N`'s memory check counts N processes (at most one per channel), not the
+    default: with FITMEDIA_MAX_MEMORY_GB between the estimates for 1 and 3 processes, three
+    workers are refused up front (exit 2, one line naming --workers, before any image is
+    read) and one worker passes the check.  Reference: estimate_peak at explicit worker
+    counts, the limit set between its values (before, --workers was ignored: the default's
+    figure was checked either way)."""
+    from fitmedia.cli import main
+    from fitmedia.data import bundled_path
+    from fitmedia.memory import ENV_LIMIT, check_memory, estimate_peak
+    from fitmedia.spec import load_spec
+
+    spec_path = bundled_path("synthetic", "default", "capture.yaml")
+    spec = load_spec(spec_path)
+    one, three = (estimate_peak(spec, "fit", workers=w) for w in (1, 3))
+    assert estimate_peak(spec, "fit", workers=8) == three  # no more processes than channels
+    monkeypatch.setenv(ENV_LIMIT, str((one + three) / 2 / 2**30))
+    check_memory(spec, "fit", workers=1)
+    code = main(["fit", str(spec_path), "--workers", "3", "--no-mcmc", "--out",
+                 str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--workers" in err[0] and "GiB" in err[0]
+    assert not (tmp_path / "out" / "results.json").exists()

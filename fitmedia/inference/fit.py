@@ -144,11 +144,14 @@ def calibrate(spec: Spec, clear: LoadedImage, noise: dict[str, tuple[float, floa
     return out, rel_sd
 
 
-def prepare(spec: Spec) -> Prepared:
-    """Load every image, estimate or read the noise, calibrate the light's brightness."""
+def prepare(spec: Spec, workers: int | None = None) -> Prepared:
+    """Load every image, estimate or read the noise, calibrate the light's brightness.
+    ``workers``: the channels that will be fitted at once (``FitOptions.workers``; None: the
+    default), for the memory check."""
     from ..memory import check_memory
 
-    check_memory(spec, "fit")  # before any image is read: a huge camera.size is refused here
+    # before any image is read: a huge camera.size (or too many workers) is refused here
+    check_memory(spec, "fit", workers=workers)
     ch_idx = tuple(CHANNELS.index(c) for c in spec.channels)
     images, clear, named = _load_images(spec, ch_idx)
     notes: list[str] = []
