@@ -103,7 +103,7 @@ def test_refresh_loop_recovers_a_stub_full_transport_capture(rng):
     for j in (0, 2):
         assert abs(full.x[j] - truth[j]) < 4 * _sd(full, j), (j, full.x, truth)
     # a second fit started beyond the MAP (restart_shift) comes back to it: one fixed point
-    shift, other = restart_shift(problem, space, full, res.x, None)
+    shift, other, _ = restart_shift(problem, space, full, res.x, None)
     assert shift < 1.0, (shift, other, full.x)
 
 
@@ -213,6 +213,89 @@ def test_refresh_loop_settles_where_its_moves_creep(rng, monkeypatch):
     Control: without them (``ALIGN_COS`` above 1) it does not settle in ``MAX_REFRESH``."""
     _loop_with_and_without(rng, monkeypatch, StubFullTransport, SteepStub, "ALIGN_COS", 2.0,
                            "extrapolated")
+
+
+def test_the_last_refresh_is_never_extrapolated(rng):
+    """A refresh placed beyond a creeping polish (``ALIGN_COS``) is checked by the refreshes
+    after it; the loop's last refresh has none, so it is never extrapolated (inference/full.py:
+    ``_next_refresh``'s ``extrapolate``; measured on Regular Milk 60 ml at 48 x 36 px, G: a
+    last refresh three moves beyond ended kappa_t +26 %).  The creeping ``SteepStub`` loop
+    extrapolates into its third refresh when it may refresh four times (control), and not when
+    the third is its last; and ``_next_refresh`` itself, for a move that goes on the same way,
+    shorter."""
+    from fitmedia.inference.full import _next_refresh
+
+    single, problem, space, truth, _ = _stub_problem(rng, 0.008)
+    problem.obs[0].model = SteepStub(single)
+    start = MapResult(truth + np.array([-0.2, 0.0, -0.15]), None, 0, None)
+    _, four = refine_map(problem, space, start, max_refresh=4)
+    _, three = refine_map(problem, space, start, max_refresh=3)
+    assert four.extrapolated >= 1 and three.extrapolated == 0, (four, three)
+    at, x = np.zeros(3), np.array([0.1, 0.0, 0.1])
+    prev = (np.array([2.0, 2.0]), False)
+    assert _next_refresh(space, at, x, np.array([1.0, 1.0]), prev, False)[1] == "extrapolated"
+    assert _next_refresh(space, at, x, np.array([1.0, 1.0]), prev, False,
+                         extrapolate=False) == (pytest.approx(x), "plain")
+
+
+def test_a_creeping_loop_goes_on_from_the_restart():
+    """inference/full.py's adopt_restart against its definition: the refreshes go on from the
+    restart's end where the loop did not settle, its last move (in the posterior sd at its
+    end) points towards the restart's end (cosine above ALIGN_COS), and the restart settled
+    or ended with a smaller move than the loop's last; not where the loop settled, the
+    restart's last move was the larger, or the loop moved away from it or at an angle (then
+    the two are two answers, and the restart check judges them)."""
+    from fitmedia.inference.full import FullFitInfo, adopt_restart
+
+    cov = np.diag([1e-4, 0.04, 4e-4, 1e-6])
+    loop = MapResult(np.array([2.74, 6.3, 0.49, 0.0]), 0.0, 1, cov)
+    restart = MapResult(np.array([2.93, 15.0, 0.81, 0.0]), 0.0, 1, cov)
+    step = np.array([0.017, 0.1, 0.057, 0.0])
+    creep = FullFitInfo(moves_sd=[3.8, 3.6], converged=False, last_step=step)
+    settled = FullFitInfo(moves_sd=[8.0, 0.05], converged=True)
+    nearer = FullFitInfo(moves_sd=[8.0, 1.7], converged=False)
+    assert adopt_restart(None, loop, creep, restart, settled)
+    assert adopt_restart(None, loop, creep, restart, nearer)
+    assert not adopt_restart(None, loop, FullFitInfo(moves_sd=[0.05], converged=True,
+                                                     last_step=step), restart, settled)
+    assert not adopt_restart(None, loop, creep, restart,
+                             FullFitInfo(moves_sd=[8.0, 4.0], converged=False))
+    away = FullFitInfo(moves_sd=[3.6], converged=False, last_step=-step)
+    assert not adopt_restart(None, loop, away, restart, settled)
+    # at an angle: in sd the move is (2, -1.5), the way to the restart (19, 16): cosine 0.23
+    across = FullFitInfo(moves_sd=[3.6], converged=False,
+                         last_step=np.array([0.02, 0.0, -0.03, 0.0]))
+    assert not adopt_restart(None, loop, across, restart, settled)
+
+
+def test_full_transport_goes_on_from_the_restart_where_it_is_adopted(rng, monkeypatch):
+    """fit._full_transport's wiring where adopt_restart says yes (forced here; its rule is
+    tested above): the refreshes go on from the restart's end, its and their refreshes are
+    counted with the loop's, the restart is not judged as a second answer
+    (``ms_restart_shift_sd`` None, ``ms_restart_adopted``), and the fit ends within 3 sd of
+    the stub capture's truth.  The term's tracing is the stub's (``SteepStub``); the share,
+    seed shift and last refreshes are stubbed (each tested on its own)."""
+    import fitmedia.inference.full as full_mod
+    from fitmedia.inference.fit import FitOptions, _full_transport
+
+    single, problem, space, truth, _ = _stub_problem(rng, 0.008)
+    start = MapResult(truth + np.array([-0.2, 0.0, -0.15]), None, 0, None)
+    start.log_posterior = problem.log_posterior(start.x)
+    monkeypatch.setattr(full_mod, "use_full_transport",
+                        lambda p, *a, **k: setattr(p.obs[0], "model", SteepStub(single)))
+    monkeypatch.setattr(full_mod, "ms_share", lambda *a, **k: (np.array([0.5]), np.array([0.01])))
+    monkeypatch.setattr(full_mod, "seed_shift", lambda *a, **k: 0.1)
+    monkeypatch.setattr(full_mod, "more_paths",
+                        lambda p, sp, r: (r, full_mod.FullFitInfo(converged=True), 2048))
+    monkeypatch.setattr(full_mod, "ms_images", lambda *a: None)
+    monkeypatch.setattr(full_mod, "adopt_restart", lambda *a: True)
+    res, out = _full_transport(problem, space, start, make_spec(width=32, height=24), "G",
+                               FitOptions(model="full"), 1)
+    assert out["model_used"] == "full" and out["ms_restart_adopted"] is True
+    assert out["ms_restart_shift_sd"] is None
+    assert out["full_refreshes"] == len(out["full_moves_sd"]) > 2
+    for j in range(3):
+        assert abs(res.x[j] - truth[j]) < 3 * _sd(res, j), (j, res.x, truth)
 
 
 def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understated():

@@ -118,6 +118,7 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
                 "offset_sd": _term_sd(f, "ms_offset_cov"),
                 "restart_shift_sd": f.get("ms_restart_shift_sd"),
                 "restart_values": f.get("ms_restart_values"),
+                "restart_adopted": f.get("ms_restart_adopted"),
                 "final_paths": f.get("ms_final_paths"), "final_move": f.get("ms_final_move"),
                 "final_move_sd": f.get("ms_final_move_sd"),
                 "other_g_mode": f.get("other_g_mode")}

@@ -394,6 +394,8 @@ def _ms_section(results: dict) -> str:
         ("Second fit from beyond the MAP: distance [sd]",
          lambda i, c: _cell(_num(i.get("restart_shift_sd")), 3)),
         ("Second fit: &kappa;<sub>t</sub>, g", lambda i, c: _restart_cell(i.get("restart_values"))),
+        ("Refreshes went on from the second fit", lambda i, c: {True: "yes", False: "no"}.get(
+            i.get("restart_adopted"), "&mdash;")),
         ("Last refreshes: paths per sample pixel", lambda i, c: _cell(i.get("final_paths"))),
         ("Their move: &kappa;<sub>t</sub> [relative], g", lambda i, c: _final_move_cell(
             i.get("final_move"))),
@@ -409,7 +411,9 @@ def _ms_section(results: dict) -> str:
               "posterior sd of log &kappa;<sub>t</sub> and atanh g; the move with other random "
               "numbers is in units of the sd the term's error (its jackknife, included in the "
               "intervals) gives it; a second fit far from the first means the images do not "
-              "decide between them; the last refreshes trace more paths, which removes most of "
+              "decide between them; where the first fit's refreshes did not settle but crept "
+              "towards the point where the second one settled, the refreshes went on from "
+              "there (approached from both sides); the last refreshes trace more paths, which removes most of "
               "the offset the term's own noise gives the values, and their move is how far "
               "that went; a share of that move may remain, and is in the intervals as the "
               "offset's sd (docs/inference.md); with single scattering, the rise of "
