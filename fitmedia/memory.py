@@ -95,9 +95,10 @@ def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
 
     synth renders one image at a time (its peak does not grow with the images); fit counts
     the spec's images, each with its own camera size.  ``workers``: channels fitted at once
-    (``--workers``; at most the spec's channels; default: :func:`default_workers`).  ``tracer``: whether the multiple-
-    scattering tracer runs (``TRACER_MB`` per process); default: for ``fit``, yes (bulb or
-    spot); for ``synth``, no (pass True for ``--model hybrid``)."""
+    (``--workers``; at most the spec's channels; default: :func:`default_workers`).
+    ``tracer``: whether the multiple-scattering tracer runs (``TRACER_MB`` per process);
+    default: for ``fit``, yes (bulb or spot); for ``synth``, no (pass True for ``--model
+    hybrid``)."""
     if tracer is None:
         tracer = command == "fit"
     trace = TRACER_MB * _MB if tracer else 0.0
