@@ -463,10 +463,9 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     (``full_other_mode_map``, its MapResult with the log posterior that puts it its measured
     distance below the MAP, for ``other_g_mode`` and the sampler: :func:`fit_channel`).
     Returns the MAP and ``fit_channel``'s fields."""
-    from .full import (RESTART_REFRESHES, adopt_restart, distance_sd, more_paths, ms_images,
-                       ms_share, offset_budget, refine_map, restart_in_loop_units,
-                       restart_shift, seed_shift, term_jackknife, use_full_transport,
-                       use_single_scattering)
+    from .full import (distance_sd, more_paths, ms_images, ms_share, offset_budget, refine_map,
+                       restart_check, restart_in_loop_units, seed_shift, term_jackknife,
+                       use_full_transport, use_single_scattering)
 
     ms_seed, check_seed = _ms_seeds(seed, channel)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
@@ -488,22 +487,8 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
         res, info, single_x, other_g, alt_full = _full_other_g(problem, space, res, info,
                                                               single_x, alt)
     # the checks on the loop's fixed point, at the loop's paths
-    term_cov = term_jackknife(problem, res)
-    _, restart, restart_info = restart_shift(problem, space, res, single_x, term_cov)
-    restart_x = restart.x
-    adopted = adopt_restart(problem, res, info, restart, restart_info)
-    if adopted:  # the loop crept towards where the restart ended: go on from there
-        log.info("full transport, channel %s: the refreshes did not settle but crept towards "
-                 "where a second fit from beyond ended; going on from there", channel)
-        res, more = refine_map(problem, space, restart, max_refresh=RESTART_REFRESHES)
-        for part in (restart_info, more):
-            info.refreshes += part.refreshes
-            info.moves_sd += part.moves_sd
-            info.moves_term += part.moves_term
-            info.midpoints += part.midpoints
-            info.extrapolated += part.extrapolated
-        info.converged = more.converged
-        term_cov = term_jackknife(problem, res)
+    res, info, restart, adopted, term_cov = restart_check(problem, space, res, info, single_x,
+                                                          channel)
     shift = seed_shift(problem, space, res, spec, channel, seed=check_seed, term_cov=term_cov)
     # then the last refreshes with more paths, and the values and their term error from there
     loop, loop_term = res, term_cov
@@ -517,11 +502,9 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                full_midpoints=info.midpoints + last.midpoints,
                full_extrapolated=info.extrapolated + last.extrapolated,
                full_converged=info.converged and last.converged, ms_term_cov=term_cov,
-               ms_restart_adopted=adopted,
-               # adopted: the restart is the answer, approached from both sides (no second one)
-               ms_restart_shift_sd=None if adopted else
-               restart_in_loop_units(problem, loop, restart_x, loop_term, res.x),
-               ms_restart_values={"kappa_t": float(np.exp(restart_x[0])), "g": float(np.tanh(restart_x[2]))},
+               ms_restart_adopted=adopted, ms_restart_shift_sd=None if adopted else  # no 2nd
+               restart_in_loop_units(problem, loop, restart.x, loop_term, res.x),
+               ms_restart_values={"kappa_t": float(np.exp(restart.x[0])), "g": float(np.tanh(restart.x[2]))},
                ms_seed_shift_sd=shift, ms_final_paths=paths, ms_offset_cov=offset_budget(res, loop.x),
                ms_final_move_sd=distance_sd(problem, res, loop.x, term_cov),
                ms_final_move={"kappa_t": float(np.exp(res.x[0] - loop.x[0]) - 1.0),

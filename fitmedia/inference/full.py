@@ -581,6 +581,40 @@ def adopt_restart(problem: ChannelProblem, loop: MapResult, loop_info: FullFitIn
     return _cosine(step, ahead) > ALIGN_COS
 
 
+def go_on_from_restart(problem: ChannelProblem, space: ParameterSpace, info: FullFitInfo,
+                       restart: MapResult, restart_info: FullFitInfo
+                       ) -> tuple[MapResult, FullFitInfo]:
+    """The refreshes gone on from the restart's end (``adopt_restart`` said yes), at most
+    ``RESTART_REFRESHES`` more: their MAP, and ``info`` with the restart's refreshes and
+    theirs counted in (settled as they are)."""
+    res, more = refine_map(problem, space, restart, max_refresh=RESTART_REFRESHES)
+    for part in (restart_info, more):
+        info.refreshes += part.refreshes
+        info.moves_sd += part.moves_sd
+        info.moves_term += part.moves_term
+        info.midpoints += part.midpoints
+        info.extrapolated += part.extrapolated
+    info.converged = more.converged
+    return res, info
+
+
+def restart_check(problem: ChannelProblem, space: ParameterSpace, res: MapResult,
+                  info: FullFitInfo, single_x: np.ndarray, channel: str) -> tuple:
+    """The restart check on the loop's end ``res`` (``restart_shift``, with the term's
+    jackknife there), and where ``adopt_restart`` says so the refreshes gone on from the
+    restart's end (``go_on_from_restart``).  Returns the MAP, ``info``, the restart's
+    MapResult, whether it was adopted, and the jackknife at the MAP (``term_jackknife``)."""
+    term_cov = term_jackknife(problem, res)
+    _, restart, restart_info = restart_shift(problem, space, res, single_x, term_cov)
+    adopted = adopt_restart(problem, res, info, restart, restart_info)
+    if adopted:  # the loop crept towards where the restart ended: go on from there
+        log.info("full transport, channel %s: the refreshes did not settle but crept towards "
+                 "where a second fit from beyond ended; going on from there", channel)
+        res, info = go_on_from_restart(problem, space, info, restart, restart_info)
+        term_cov = term_jackknife(problem, res)
+    return res, info, restart, adopted, term_cov
+
+
 def restart_in_loop_units(problem: ChannelProblem, loop: MapResult, restart_x: np.ndarray,
                           loop_term_cov: np.ndarray | None, final_x: np.ndarray) -> float:
     """The restart's distance (``restart_shift``: two fixed points of the loop, at the loop's

@@ -383,8 +383,7 @@ def _ms_section(results: dict) -> str:
         ("Rise of &chi;&sup2;/pixel were it in the images (single scattering)",
          lambda i, c: _cell(_num(i.get("chi2_excess_if_present")), 3)),
         ("Capture declares a single-scattering render",
-         lambda i, c: {True: "yes", False: "no"}.get(
-             i.get("capture_declared_single_scattering_render"), "&mdash;")),
+         lambda i, c: _yes_no(i.get("capture_declared_single_scattering_render"))),
         ("Refreshes of the term", lambda i, c: _cell(i.get("refreshes"))),
         ("Refreshes settled", lambda i, c: _cell(i.get("converged"))),
         ("Last move [posterior sd]", lambda i, c: _cell(_num((i.get("moves_sd") or [None])[-1]), 3)),
@@ -394,8 +393,7 @@ def _ms_section(results: dict) -> str:
         ("Second fit from beyond the MAP: distance [sd]",
          lambda i, c: _cell(_num(i.get("restart_shift_sd")), 3)),
         ("Second fit: &kappa;<sub>t</sub>, g", lambda i, c: _restart_cell(i.get("restart_values"))),
-        ("Refreshes went on from the second fit", lambda i, c: {True: "yes", False: "no"}.get(
-            i.get("restart_adopted"), "&mdash;")),
+        ("Refreshes went on from the second fit", lambda i, c: _yes_no(i.get("restart_adopted"))),
         ("Last refreshes: paths per sample pixel", lambda i, c: _cell(i.get("final_paths"))),
         ("Their move: &kappa;<sub>t</sub> [relative], g", lambda i, c: _final_move_cell(
             i.get("final_move"))),
@@ -406,20 +404,19 @@ def _ms_section(results: dict) -> str:
     rows = [r for r in rows if any(x != "&mdash;" for x in r[1:])]
     return ("<h2>Multiple scattering</h2>\n"
             + _table(["Field"] + [f"Channel {html.escape(c)}" for c in ms], rows)
-            + '<p class="muted">Share: the multiple-scattering term over the glow (pixels off the '
-              "bulb), with its Monte Carlo standard error; the moves are those of the fit in "
-              "posterior sd of log &kappa;<sub>t</sub> and atanh g; the move with other random "
-              "numbers is in units of the sd the term's error (its jackknife, included in the "
-              "intervals) gives it; a second fit far from the first means the images do not "
-              "decide between them; where the first fit's refreshes did not settle but crept "
-              "towards the point where the second one settled, the refreshes went on from "
-              "there (approached from both sides); the last refreshes trace more paths, which removes most of "
-              "the offset the term's own noise gives the values, and their move is how far "
-              "that went; a share of that move may remain, and is in the intervals as the "
-              "offset's sd (docs/inference.md); with single scattering, the rise of "
-              "&chi;&sup2;/pixel is what the term would cause were it in the images, which the "
-              "misfit guard sees only where it is well above the guard's room (docs/results.md, "
-              "'The single-scattering check').</p>\n")
+            + '<p class="muted">Share: the multiple-scattering term over the glow (pixels off the bulb), '
+              "with its Monte Carlo standard error; the moves are those of the fit in posterior sd "
+              "of log &kappa;<sub>t</sub> and atanh g; the move with other random numbers is in "
+              "units of the sd the term's error (its jackknife, included in the intervals) gives "
+              "it; a second fit far from the first means the images do not decide between them; "
+              "where the first fit's refreshes did not settle but crept towards where the second "
+              "one ended, the refreshes went on from there (approached from both sides); the last "
+              "refreshes trace more paths, which removes most of the offset the term's own noise "
+              "gives the values, and their move is how far that went; a share of that move may "
+              "remain, and is in the intervals as the offset's sd (docs/inference.md); with single "
+              "scattering, the rise of &chi;&sup2;/pixel is what the term would cause were it in "
+              "the images, which the misfit guard sees only where it is well above the guard's "
+              "room (docs/results.md, 'The single-scattering check').</p>\n")
 
 
 def _term_sd_cell(sd: Any) -> str:
@@ -434,6 +431,11 @@ def _final_move_cell(v: Any) -> str:
     if not isinstance(v, dict) or _num(v.get("kappa_t")) is None or _num(v.get("g")) is None:
         return "&mdash;"
     return f"{100 * _num(v['kappa_t']):+.1f} %, {_num(v['g']):+.3f}"
+
+
+def _yes_no(v: Any) -> str:
+    """A flag's cell: yes, no, or a dash where results.json does not have it."""
+    return {True: "yes", False: "no"}.get(v, "&mdash;")
 
 
 def _restart_cell(v: Any) -> str:
