@@ -268,6 +268,24 @@ def test_a_creeping_loop_goes_on_from_the_restart():
     assert not adopt_restart(None, loop, across, restart, settled)
 
 
+def test_refreshes_followed_by_later_ones_count_together():
+    """FullFitInfo.followed_by against its definition: counts summed, moves concatenated in
+    order, settled and the last step as the last part left them; the parts unchanged."""
+    from fitmedia.inference.full import FullFitInfo
+
+    a = FullFitInfo(refreshes=8, moves_sd=[5.0, 3.6], moves_term=[4.0, 2.1], converged=False,
+                    midpoints=1, extrapolated=2, last_step=np.ones(4))
+    b = FullFitInfo(refreshes=4, moves_sd=[1.7], moves_term=[1.2], converged=False,
+                    extrapolated=1)
+    c = FullFitInfo(refreshes=1, moves_sd=[0.2], moves_term=[0.1], converged=True,
+                    last_step=np.zeros(4))
+    t = a.followed_by(b, c)
+    assert (t.refreshes, t.midpoints, t.extrapolated, t.converged) == (13, 1, 3, True)
+    assert t.moves_sd == [5.0, 3.6, 1.7, 0.2] and t.moves_term == [4.0, 2.1, 1.2, 0.1]
+    assert t.last_step is c.last_step and a.moves_sd == [5.0, 3.6] and a.refreshes == 8
+    assert a.followed_by(b).converged is False
+
+
 def test_full_transport_goes_on_from_the_restart_where_it_is_adopted(rng, monkeypatch):
     """fit._full_transport's wiring where adopt_restart says yes (forced here; its rule is
     tested above): the refreshes go on from the restart's end, its and their refreshes are

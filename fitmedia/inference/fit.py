@@ -495,12 +495,11 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     res, last, paths = more_paths(problem, space, res)
     term_cov = term_jackknife(problem, res)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
+    both = info.followed_by(last)
     out.update(model_used="full", ms_share=share, ms_share_se=share_se,
-               full_refreshes=info.refreshes + last.refreshes,
-               full_moves_sd=info.moves_sd + last.moves_sd,
-               full_moves_term=info.moves_term + last.moves_term,
-               full_midpoints=info.midpoints + last.midpoints,
-               full_extrapolated=info.extrapolated + last.extrapolated,
+               full_refreshes=both.refreshes, full_moves_sd=both.moves_sd,
+               full_moves_term=both.moves_term, full_midpoints=both.midpoints,
+               full_extrapolated=both.extrapolated,
                full_converged=info.converged and last.converged, ms_term_cov=term_cov,
                ms_restart_adopted=adopted, ms_restart_shift_sd=None if adopted else  # no 2nd
                restart_in_loop_units(problem, loop, restart.x, loop_term, res.x),

@@ -133,6 +133,18 @@ class FullFitInfo:
     #: the last polish's move (its end minus its refresh point, sampler coordinates)
     last_step: np.ndarray | None = None
 
+    def followed_by(self, *later: FullFitInfo) -> FullFitInfo:
+        """These refreshes and ``later`` ones counted together: the counts summed, the moves
+        in order; settled and the last step as the last of them left them."""
+        parts = (self, *later)
+        return FullFitInfo(refreshes=sum(p.refreshes for p in parts),
+                           moves_sd=[m for p in parts for m in p.moves_sd],
+                           moves_term=[m for p in parts for m in p.moves_term],
+                           converged=parts[-1].converged,
+                           midpoints=sum(p.midpoints for p in parts),
+                           extrapolated=sum(p.extrapolated for p in parts),
+                           last_step=parts[-1].last_step)
+
 
 def use_full_transport(problem: ChannelProblem, spec, channel: str, *, seed: int) -> None:
     """Give every observation of ``problem`` the full-transport model of its image, built
@@ -588,14 +600,7 @@ def go_on_from_restart(problem: ChannelProblem, space: ParameterSpace, info: Ful
     ``RESTART_REFRESHES`` more: their MAP, and ``info`` with the restart's refreshes and
     theirs counted in (settled as they are)."""
     res, more = refine_map(problem, space, restart, max_refresh=RESTART_REFRESHES)
-    for part in (restart_info, more):
-        info.refreshes += part.refreshes
-        info.moves_sd += part.moves_sd
-        info.moves_term += part.moves_term
-        info.midpoints += part.midpoints
-        info.extrapolated += part.extrapolated
-    info.converged = more.converged
-    return res, info
+    return res, info.followed_by(restart_info, more)
 
 
 def restart_check(problem: ChannelProblem, space: ParameterSpace, res: MapResult,
