@@ -18,7 +18,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .inference.fit import OTHER_MODE_DELTA
+from .inference.full import RESTART_DELTA as FULL_RESTART_DELTA
+from .inference.sample import OTHER_MODE_DELTA
 from .inference.summary import summarise
 
 #: Tail probability of the noise-only chi2 distribution that the guard tolerates.
@@ -141,6 +142,11 @@ SEED_SHIFT_Z = 3.0
 #: a second full-transport fit started beyond the MAP (inference/full.py: restart_shift) that
 #: ends more than this many sd (Laplace plus the term's jackknife) away: two fixed points
 RESTART_SD = 3.0
+#: ... unless it settled where the log posterior (the local model rebuilt there) is more than
+#: this many units below the MAP's: a fixed point of the loop that the images decide against
+#: (``restart_delta_log_posterior``; inference/full.py: ``RESTART_DELTA``, the bound for a
+#: second mode)
+RESTART_DELTA = FULL_RESTART_DELTA
 #: the last refreshes, at 8 times the paths (inference/full.py: more_paths), move the values
 #: from the loop's fixed point by most of the offset the term's own noise gave it; a share of
 #: that move may remain (inference/full.py: ``OFFSET_SHARE``), and is in the intervals as a
@@ -182,7 +188,9 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"{-other['delta_log_posterior']:.2g} log-posterior units of the values given: "
                 f"the sign of g in channel {ch} is not determined by the images")
         restart = ms.get("restart_shift_sd")
-        if restart is not None and not restart <= RESTART_SD:
+        worse = ms.get("restart_delta_log_posterior")
+        if restart is not None and not restart <= RESTART_SD \
+                and not (worse is not None and worse < -RESTART_DELTA):
             second = ms.get("restart_values") or {}
             _add(reasons, "restart", 
                 f"a second full-transport fit of channel {ch}, started further along the "

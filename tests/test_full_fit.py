@@ -800,3 +800,84 @@ def test_second_mode_of_g_is_sampled_on_a_local_model_rebuilt_there(rng):
     assert all(np.array_equal(a, b) for a, b in zip(var_before, problem._model_var))
     samples2 = out["samples"][np.tanh(out["samples"][:, 2]) < 0]
     assert len(samples2) == out["modes"][1]["n_samples_used"]
+
+
+def test_a_restart_the_images_decide_against_is_no_reason_and_one_they_prefer_is_adopted():
+    """The restart's log posterior against the MAP's (inference/full.py: ``RESTART_DELTA``,
+    the bound for a second mode; each with the local model rebuilt there), on the rule's
+    definition.  adopt_restart: the refreshes go on from a settled restart more than
+    RESTART_DELTA above the loop's end, even where the loop settled; not within it (control:
+    the loop settled, so the creep rule does not apply either) nor where it is unknown.
+    trust.transport_reasons: a restart far away in sd but more than RESTART_DELTA below the
+    MAP is no reason (the images decide against it); within it, or unknown, it is."""
+    from fitmedia.inference.full import RESTART_DELTA, FullFitInfo, adopt_restart
+    from fitmedia.trust import RESTART_SD, transport_reasons
+
+    cov = np.diag([1e-4, 0.04, 4e-4, 1e-6])
+    loop = MapResult(np.array([2.96, 7.5, 0.82, 0.0]), 0.0, 1, cov)
+    restart = MapResult(np.array([3.53, 15.0, 1.27, 0.0]), 0.0, 1, cov)
+    settled = FullFitInfo(moves_sd=[8.0, 0.05], converged=True, last_step=np.zeros(4))
+    assert adopt_restart(None, loop, settled, restart, settled, RESTART_DELTA + 12.0)
+    assert not adopt_restart(None, loop, settled, restart, settled, RESTART_DELTA - 3.0)
+    assert not adopt_restart(None, loop, settled, restart, settled, None)
+    far = {"refreshes": 3, "converged": True, "moves_sd": [2.0, 0.05], "seed_shift_sd": 0.5,
+           "term_sd": {"log_kappa_t": 0.01}, "restart_shift_sd": RESTART_SD + 11.0,
+           "restart_values": {"kappa_t": 34.2, "g": 0.855}}
+    assert len(transport_reasons({"G": {"multiple_scattering": far}})) == 1
+    for delta, n in ((-RESTART_DELTA - 40.0, 0), (-RESTART_DELTA + 3.0, 1), (None, 1)):
+        ms = {**far, "restart_delta_log_posterior": delta}
+        assert len(transport_reasons({"G": {"multiple_scattering": ms}})) == n, delta
+
+
+def test_restart_delta_compares_the_two_fixed_points_each_with_its_own_local_model(rng):
+    """inference/full.py's restart_delta against the log posterior computed by hand (a
+    stub's local model, too steep, rebuilt at each point, then the problem's log posterior there): the
+    difference for a settled restart, None for one that did not settle, and the problem left
+    with its local model at the MAP (its log posterior there unchanged)."""
+    from fitmedia.inference.full import FullFitInfo, restart_delta
+
+    single, problem, space, truth, _ = _stub_problem(rng, 0.008)
+    problem.obs[0].model = SteepStub(single)  # its log posterior depends on where it is built
+    res, _ = refine_map(problem, space, MapResult(truth.copy(), None, 0, None))
+    other = MapResult(res.x + np.array([0.3, 0.0, 0.2]), None, 0, None)
+
+    def by_hand(x):
+        problem.refresh_models(x)
+        problem.adapt(x)
+        return problem.log_posterior(x)
+
+    expected = by_hand(other.x) - by_hand(res.x)
+    at_map = problem.log_posterior(res.x)
+    assert expected < -1.0  # the two points differ: the comparison can fail
+    got = restart_delta(problem, res, other, FullFitInfo(converged=True))
+    assert got == pytest.approx(expected, rel=1e-9)
+    assert problem.log_posterior(res.x) == pytest.approx(at_map, rel=1e-12)
+    assert restart_delta(problem, res, other, FullFitInfo(converged=False)) is None
+
+
+def test_a_bulb_fit_that_misfits_is_scanned_from_other_starts(rng):
+    """fit._misfit_scan: a full-transport fit whose loop ended where the model does not
+    describe the images (here put there by hand: kappa_t 0.3 times and atanh g 0.4 below the
+    stub capture's truth, chi2/pixel far above the misfit guard's limit) is scanned from the
+    single-scattering MAP (full.scan_start), and the loop and restart check from the scan's
+    best point end within 3 sd of the truth, with a higher log posterior, and are kept.
+    Control: a fit at the stub's MAP passes the guard and is not scanned (None)."""
+    from fitmedia.inference.fit import _misfit_scan
+    from fitmedia.inference.full import FullFitInfo, RestartCheck
+
+    single, problem, space, truth, single_map = _stub_problem(rng, 0.008)
+    problem.obs[0].model = LocalStub(single)
+    good, info = refine_map(problem, space, MapResult(truth.copy(), None, 0, None))
+    kept, scan = _misfit_scan(problem, space, RestartCheck(good, info, good, False, None, None),
+                              single_map.x, "G")
+    assert scan is None and kept.res is good
+    bad_x = truth + np.array([np.log(0.3), 0.0, -0.4])
+    bad = MapResult(bad_x, problem.log_posterior(bad_x), 0, None)
+    kept, scan = _misfit_scan(problem, space,
+                              RestartCheck(bad, FullFitInfo(converged=True), bad, False, None,
+                                           None), single_map.x, "G")
+    assert scan["chi2_per_pixel_before"] > 3.0 and scan["used"], scan
+    assert scan["delta_log_posterior"] > 0 and scan["chi2_per_pixel_after"] < 1.5, scan
+    assert len(scan["rows"]) == 12
+    for j in (0, 2):
+        assert abs(kept.res.x[j] - truth[j]) < 3 * _sd(kept.res, j), (j, kept.res.x, truth)

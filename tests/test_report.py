@@ -313,7 +313,8 @@ def test_report_shows_the_multiple_scattering_part(fit_outputs, tmp_path):
 def test_report_multiple_scattering_table_and_full_model_causes(fit_outputs, tmp_path):
     """A full-transport result (results.json diagnostics.channels.G.multiple_scattering, as
     inference/results.py writes it) gets its own table with the share and its error, the
-    refreshes and the seed shift in words, not a raw dict; an untrusted full-model result
+    refreshes, the seed shift, the restart's log posterior and a misfit's scan in words, not a
+    raw dict; an untrusted full-model result
     names the term's Monte Carlo error as a cause and does not tell the user to switch to
     the model that was already used."""
     out = _copy(fit_outputs["map"], tmp_path / "fit")
@@ -324,6 +325,9 @@ def test_report_multiple_scattering_table_and_full_model_causes(fit_outputs, tmp
         "refreshes": 3, "converged": True, "moves_sd": [2.0, 0.4, 0.05], "seed_shift_sd": 3.25,
         "term_sd": {"log_kappa_t": 0.0166, "logit_albedo": 0.82, "atanh_g": 0.0114},
         "restart_shift_sd": 7.31, "restart_values": {"kappa_t": 14.72, "g": 0.887},
+        "restart_delta_log_posterior": -3.125, "misfit_scan": {
+            "rows": [], "chi2_per_pixel_before": 2.834, "chi2_per_pixel_after": 1.043,
+            "delta_log_posterior": 5000.0, "used": True},
         "final_paths": 4096, "final_move": {"kappa_t": 0.0126, "g": 0.0069}, "final_move_sd": 0.81})
     results["trust"].update(ok=False, reasons=["the multiple-scattering term's own Monte Carlo "
                                                "error moves the values of channel G by 3.2 sd"])
@@ -334,6 +338,7 @@ def test_report_multiple_scattering_table_and_full_model_causes(fit_outputs, tmp
     assert "0.612 &plusmn; 0.012" in ms and "3.25" in ms and "Refreshes settled" in ms
     assert "0.017, 0.011" in ms and "7.31" in ms and "14.72, 0.887" in ms  # jackknife, restart
     assert "4096" in ms and "+1.3 %, +0.007" in ms  # the last refreshes: paths, move
+    assert "-3.12" in ms and "2.83, 1.04 (kept)" in ms  # the restart's log posterior, the scan
     assert "{" not in ms and "{'share'" not in text  # no raw dict anywhere
     box = text[text.index('class="untrusted"'):text.index("<h2>Estimates</h2>")]
     assert "Monte Carlo error" in box and "--model full" not in box

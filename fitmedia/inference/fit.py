@@ -26,17 +26,12 @@ from .likelihood import ChannelProblem, Observation
 from .optimize import MapResult, find_map
 from .params import G_MAX, G_MIN, ChannelParams, ParameterSpace
 from .result import FitOptions
-from .sample import Redraw, half_space, mix_modes, mode_log_mass, mode_weights, run_chain
+from .sample import (OTHER_MODE_DELTA, Redraw, half_space, mix_modes, mode_log_mass, mode_weights,
+                     run_chain)
 
 log = logging.getLogger("fitmedia")
 
 
-#: A second mode of g (the other sign) whose log posterior is within this of the MAP's is
-#: sampled too (a chain of its own) and the two chains are mixed by the modes' posterior masses.
-#: 8 units below, the density is 3.4e-4 of the MAP's; the backward mode at g's bound is
-#: narrower than the forward one (mass 0.2 x density ratio in a measured case), so a mode left
-#: out holds well under 0.1 % of the posterior (docs/inference.md)
-OTHER_MODE_DELTA = 8.0
 #: The modes' weights are trusted when their standard error (from the bridge sampling of each
 #: mode's mass) is below this: an error dw in the weights moves the mixture's CDF by at most dw
 #: anywhere, so no interval's coverage by more than 2 dw
@@ -482,13 +477,13 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     single_x = res.x
     start = scan["best"] if scan and scan["best"].log_posterior > res.log_posterior else res
     res, info = refine_map(problem, space, start)
-    other_g = None
-    if alt is not None:  # the other sign of g, refined with the full model as well
-        res, info, single_x, other_g, alt_full = _full_other_g(problem, space, res, info,
-                                                              single_x, alt)
-    # the checks on the loop's fixed point, at the loop's paths
-    res, info, restart, adopted, term_cov = restart_check(problem, space, res, info, single_x,
-                                                          channel)
+    # the other sign of g, refined with the full model as well
+    res, info, single_x, other_g, alt_full = (res, info, single_x, None, None) if alt is None \
+        else _full_other_g(problem, space, res, info, single_x, alt)
+    # the checks on the loop's fixed point, at the loop's paths (and a bulb's misfit's scan)
+    check, out["ms_misfit_scan"] = _misfit_scan(problem, space, restart_check(
+        problem, space, res, info, single_x, channel), single_x, channel, scan is not None)
+    res, info, restart, adopted, term_cov, _ = check
     shift = seed_shift(problem, space, res, spec, channel, seed=check_seed, term_cov=term_cov)
     # then the last refreshes with more paths, and the values and their term error from there
     loop, loop_term = res, term_cov
@@ -501,7 +496,8 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                full_moves_term=both.moves_term, full_midpoints=both.midpoints,
                full_extrapolated=both.extrapolated,
                full_converged=info.converged and last.converged, ms_term_cov=term_cov,
-               ms_restart_adopted=adopted, ms_restart_shift_sd=None if adopted else  # no 2nd
+               ms_restart_adopted=adopted, ms_restart_delta=None if adopted else check.delta,
+               ms_restart_shift_sd=None if adopted else  # no 2nd
                restart_in_loop_units(problem, loop, restart.x, loop_term, res.x),
                ms_restart_values={"kappa_t": float(np.exp(restart.x[0])), "g": float(np.tanh(restart.x[2]))},
                ms_seed_shift_sd=shift, ms_final_paths=paths, ms_offset_cov=offset_budget(res, loop.x),
@@ -515,17 +511,54 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     return res, out
 
 
+def _misfit_scan(problem: ChannelProblem, space: ParameterSpace, check, single_x: np.ndarray,
+                 channel: str, scanned: bool = False) -> tuple:
+    """For a bulb (not ``scanned`` already from the start, as a spot is) whose full-transport fit ``check`` (``full.RestartCheck``, at the loop's
+    paths) fails the misfit guard there (trust.py: ``misfit``): the spot's scan from the
+    single-scattering MAP ``single_x`` (``full.scan_start``), the loop and the restart check
+    from its best point, and the better of the two fits (each log posterior with the local
+    model rebuilt there) kept.  The loop's start decides which of its fixed points it ends at,
+    and from the single-scattering MAP of dense milk it may end at one that does not describe
+    the images (Regular Milk 60 ml at 100 x 75 px, G: chi2/pixel 2.94, the noise allowing 1.2;
+    from the scan's best start 1.04: docs/inference.md, "Dense milk at 100 x 75").  Returns
+    the check kept and results.json's ``misfit_scan`` (None where the guard held)."""
+    from ..trust import misfit
+    from .full import log_posterior_rebuilt, refine_map, restart_check, scan_start
+
+    if scanned:
+        return check, None
+    lp = log_posterior_rebuilt(problem, check.res.x)
+    chi2, n = problem.chi2(check.res.x)
+    if misfit(chi2 / max(n, 1), n)["ok"] is not False:
+        return check, None
+    log.info("full transport, channel %s: chi2/pixel %.3g at the fit does not describe the "
+             "images; scanning for another start", channel, chi2 / max(n, 1))
+    start = MapResult(single_x.copy(), float("nan"), 0, None)  # scan_start reads its x
+    best, rows = scan_start(problem, space, start)
+    res, info = refine_map(problem, space, best)
+    other = restart_check(problem, space, res, info, single_x, channel)
+    lp_other = log_posterior_rebuilt(problem, other.res.x)
+    chi2_other = problem.chi2(other.res.x)[0] / max(n, 1)
+    used = lp_other > lp
+    kept = other if used else check
+    problem.refresh_models(kept.res.x)
+    problem.adapt(kept.res.x)
+    return kept, {"rows": rows, "chi2_per_pixel_before": chi2 / max(n, 1),
+                  "chi2_per_pixel_after": chi2_other, "delta_log_posterior": lp_other - lp,
+                  "used": bool(used)}
+
+
 def _full_other_g(problem: ChannelProblem, space: ParameterSpace, res, info, single_x, alt):
     """The single-scattering optimum ``alt`` with g of the other sign, refined with the full
     model; the better of it and the full MAP ``res`` (each log posterior with the local model
     rebuilt there) becomes the MAP.  Returns the MAP, its refreshes' info, the single-scattering
     point it came from, and the other one (``other_g_mode``'s fields and its MapResult; None,
     None where it is not of the other sign: it slid into the MAP's region)."""
-    from .full import refine_map
+    from .full import log_posterior_rebuilt, refine_map
 
     alt_full, alt_info = refine_map(problem, space, alt)
-    lp_alt = _log_posterior_refreshed(problem, alt_full.x)
-    lp_res = _log_posterior_refreshed(problem, res.x)
+    lp_alt = log_posterior_rebuilt(problem, alt_full.x)
+    lp_res = log_posterior_rebuilt(problem, res.x)
     if lp_alt > lp_res:
         res, alt_full, info, single_x, lp_res, lp_alt = \
             alt_full, res, alt_info, alt.x, lp_alt, lp_res
@@ -623,14 +656,6 @@ def _single_ms_check(problem: ChannelProblem, space: ParameterSpace, res, spec: 
                    ms_scan_verdict=scan["verdict"],
                    ms_scan_best={"kappa_t": scan["best_kappa_t"], "g": scan["best_g"]})
     return out
-
-
-def _log_posterior_refreshed(problem: ChannelProblem, x: np.ndarray) -> float:
-    """The full model's log posterior at ``x`` with its local model rebuilt there (the same
-    random numbers wherever it is built, so two points compare on one realisation)."""
-    problem.refresh_models(x)
-    problem.adapt(x)
-    return float(problem.log_posterior(x))
 
 
 def albedo_redraw(space: ParameterSpace, x_map: np.ndarray, cov: np.ndarray | None) -> Redraw:

@@ -31,12 +31,14 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from .likelihood import ChannelProblem
 from .optimize import MapResult, find_map, laplace_covariance
 from .params import ParameterSpace
+from .sample import OTHER_MODE_DELTA
 
 log = logging.getLogger("fitmedia")
 
@@ -79,6 +81,15 @@ AUTO_SHARE = 0.02
 #: kappa_t and atanh g, and it refreshes the term at most this many times
 RESTART_REACH = 0.5
 RESTART_REFRESHES = 4
+#: a restart that settled where the log posterior, with the local model rebuilt there, is
+#: more than this many units from the MAP's is a fixed point the images decide against: below
+#: the MAP's it is no second answer (``restart_delta``; trust.py's restart check then holds
+#: no reason), above it the refreshes go on from there (``adopt_restart``).  The bound is the
+#: one for a second mode of g (inference/sample.py: ``OTHER_MODE_DELTA``): within it the images
+#: do not tell two points apart.  Measured on Regular Milk 60 ml at 100 x 75 px (G): from
+#: near the answer the loop settled at kappa_t 19.3, g 0.675 (truth 20.4, 0.714) and the
+#: restart at kappa_t 34.2, g 0.855 (docs/inference.md, "Dense milk at 100 x 75")
+RESTART_DELTA = OTHER_MODE_DELTA
 #: the last refreshes trace the term with this many times its paths (``more_paths``): the
 #: MAP's offset from the term's own noise falls with the paths (docs/inference.md, "The g
 #: offset at the truth"); 1: no such stage.  8 since 2026-12-06 (16 before): with the term
@@ -571,10 +582,33 @@ def restart_shift(problem: ChannelProblem, space: ParameterSpace, res: MapResult
     return distance_sd(problem, res, other.x, term_cov), other, info
 
 
+def log_posterior_rebuilt(problem: ChannelProblem, x: np.ndarray) -> float:
+    """The full model's log posterior at ``x`` with its local model rebuilt there (the same
+    random numbers wherever it is built, so two points compare on one realisation)."""
+    problem.refresh_models(x)
+    problem.adapt(x)
+    return float(problem.log_posterior(x))
+
+
+def restart_delta(problem: ChannelProblem, res: MapResult, restart: MapResult,
+                  restart_info: FullFitInfo) -> float | None:
+    """The log posterior at the restart's end minus that at the MAP ``res``, each with the
+    local model rebuilt there (``log_posterior_rebuilt``), where the restart settled (a fixed
+    point of the loop, as the MAP is); None where it did not (its end is no fixed point, and
+    where it would have settled is not known).  The local model is left rebuilt at ``res``."""
+    if not restart_info.converged:
+        return None
+    there = log_posterior_rebuilt(problem, restart.x)
+    return there - log_posterior_rebuilt(problem, res.x)
+
+
 def adopt_restart(problem: ChannelProblem, loop: MapResult, loop_info: FullFitInfo,
-                  restart: MapResult, restart_info: FullFitInfo) -> bool:
+                  restart: MapResult, restart_info: FullFitInfo, delta: float | None = None
+                  ) -> bool:
     """Whether the refreshes go on from the restart's end (``restart_shift``) instead of the
-    end of a loop that did not settle: the loop crept (its last move, in the posterior sd at
+    loop's end: the restart settled where the log posterior is more than ``RESTART_DELTA``
+    above the loop's end (``delta``, :func:`restart_delta`), the images prefer it; or the loop
+    did not settle and crept (its last move, in the posterior sd at
     its end, points towards the restart's end: cosine above ``ALIGN_COS``), and the restart,
     started beyond, settled or ended with a smaller move than the loop's last.  The fixed
     point is then approached from both sides, and the restart is the nearer to it.  Measured
@@ -582,6 +616,8 @@ def adopt_restart(problem: ChannelProblem, loop: MapResult, loop_info: FullFitIn
     0.43, 0.49 (about 0.06 and 3-4 sd a refresh, truth 0.90) and did not settle in
     ``MAX_REFRESH``; the restart from atanh g 0.75 came back to 0.81 with moves of 8, 10, 4
     and 1.7 sd (docs/inference.md, "Dense milk: going on from the restart")."""
+    if delta is not None and delta > RESTART_DELTA:
+        return True
     if loop_info.converged or loop_info.last_step is None or not loop_info.moves_sd:
         return False
     if not (restart_info.converged
@@ -603,21 +639,36 @@ def go_on_from_restart(problem: ChannelProblem, space: ParameterSpace, info: Ful
     return res, info.followed_by(restart_info, more)
 
 
+class RestartCheck(NamedTuple):
+    """What :func:`restart_check` found: the MAP and its refreshes' ``info`` (gone on from
+    the restart where ``adopted``), the restart's MapResult, the term's jackknife at the MAP
+    (``term_cov``) and the restart's log posterior relative to the loop's end (``delta``,
+    :func:`restart_delta`; None where the restart did not settle)."""
+
+    res: MapResult
+    info: FullFitInfo
+    restart: MapResult
+    adopted: bool
+    term_cov: np.ndarray | None
+    delta: float | None
+
+
 def restart_check(problem: ChannelProblem, space: ParameterSpace, res: MapResult,
-                  info: FullFitInfo, single_x: np.ndarray, channel: str) -> tuple:
+                  info: FullFitInfo, single_x: np.ndarray, channel: str) -> RestartCheck:
     """The restart check on the loop's end ``res`` (``restart_shift``, with the term's
-    jackknife there), and where ``adopt_restart`` says so the refreshes gone on from the
-    restart's end (``go_on_from_restart``).  Returns the MAP, ``info``, the restart's
-    MapResult, whether it was adopted, and the jackknife at the MAP (``term_jackknife``)."""
+    jackknife there, and ``restart_delta``), and where ``adopt_restart`` says so the
+    refreshes gone on from the restart's end (``go_on_from_restart``)."""
     term_cov = term_jackknife(problem, res)
     _, restart, restart_info = restart_shift(problem, space, res, single_x, term_cov)
-    adopted = adopt_restart(problem, res, info, restart, restart_info)
-    if adopted:  # the loop crept towards where the restart ended: go on from there
-        log.info("full transport, channel %s: the refreshes did not settle but crept towards "
-                 "where a second fit from beyond ended; going on from there", channel)
+    delta = restart_delta(problem, res, restart, restart_info)
+    adopted = adopt_restart(problem, res, info, restart, restart_info, delta)
+    if adopted:  # the restart fits better, or the loop crept towards it: go on from there
+        log.info("full transport, channel %s: a second fit from beyond ended %s; going on from "
+                 "there", channel, "where the images fit better" if delta is not None and
+                 delta > RESTART_DELTA else "where the refreshes, which did not settle, crept")
         res, info = go_on_from_restart(problem, space, info, restart, restart_info)
         term_cov = term_jackknife(problem, res)
-    return res, info, restart, adopted, term_cov
+    return RestartCheck(res, info, restart, adopted, term_cov, delta)
 
 
 def restart_in_loop_units(problem: ChannelProblem, loop: MapResult, restart_x: np.ndarray,

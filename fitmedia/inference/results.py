@@ -119,6 +119,8 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
                 "restart_shift_sd": f.get("ms_restart_shift_sd"),
                 "restart_values": f.get("ms_restart_values"),
                 "restart_adopted": f.get("ms_restart_adopted"),
+                "restart_delta_log_posterior": f.get("ms_restart_delta"),
+                "misfit_scan": f.get("ms_misfit_scan"),
                 "final_paths": f.get("ms_final_paths"), "final_move": f.get("ms_final_move"),
                 "final_move_sd": f.get("ms_final_move_sd"),
                 "other_g_mode": f.get("other_g_mode")}

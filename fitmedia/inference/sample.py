@@ -13,6 +13,13 @@ import numpy as np
 
 from .summary import kish_ess
 
+#: A second mode of g (the other sign) whose log posterior is within this of the MAP's is
+#: sampled too (a chain of its own) and the two chains are mixed by the modes' posterior masses.
+#: 8 units below, the density is 3.4e-4 of the MAP's; the backward mode at g's bound is
+#: narrower than the forward one (mass 0.2 x density ratio in a measured case), so a mode left
+#: out holds well under 0.1 % of the posterior (docs/inference.md)
+OTHER_MODE_DELTA = 8.0
+
 
 @dataclass
 class ChainResult:

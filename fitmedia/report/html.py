@@ -358,6 +358,26 @@ def _trust_causes(results: dict) -> str:
             "wrong noise model. See the residual images below.")
 
 
+#: the caption under the multiple-scattering table (_ms_section)
+_MS_CAPTION = (
+    '<p class="muted">Share: the multiple-scattering term over the glow (pixels off the bulb), '
+    "with its Monte Carlo standard error; the moves are those of the fit in posterior sd "
+    "of log &kappa;<sub>t</sub> and atanh g; the move with other random numbers is in "
+    "units of the sd the term's error (its jackknife, included in the intervals) gives "
+    "it; a second fit far from the first means the images do not decide between them, "
+    "unless its log posterior is more than 8 below the MAP's (the images decide against "
+    "it); where it is more than 8 above, or where the first fit's refreshes did not "
+    "settle but crept towards where the second one ended, the refreshes went on from "
+    "there; where the fit did not describe the images (the misfit guard), it was scanned "
+    "from other starts and the better fit kept; the last "
+    "refreshes trace more paths, which removes most of the offset the term's own noise "
+    "gives the values, and their move is how far that went; a share of that move may "
+    "remain, and is in the intervals as the offset's sd (docs/inference.md); with single "
+    "scattering, the rise of &chi;&sup2;/pixel is what the term would cause were it in "
+    "the images, which the misfit guard sees only where it is well above the guard's "
+    "room (docs/results.md, 'The single-scattering check').</p>\n")
+
+
 def _ms_section(results: dict) -> str:
     """The multiple-scattering term per channel (``--model full`` / ``auto``, and the single-
     scattering check of ``--model single``), as a table."""
@@ -393,7 +413,11 @@ def _ms_section(results: dict) -> str:
         ("Second fit from beyond the MAP: distance [sd]",
          lambda i, c: _cell(_num(i.get("restart_shift_sd")), 3)),
         ("Second fit: &kappa;<sub>t</sub>, g", lambda i, c: _restart_cell(i.get("restart_values"))),
+        ("Second fit: log posterior minus the MAP's",
+         lambda i, c: _cell(_num(i.get("restart_delta_log_posterior")), 3)),
         ("Refreshes went on from the second fit", lambda i, c: _yes_no(i.get("restart_adopted"))),
+        ("Misfit: scanned from other starts, &chi;&sup2;/pixel before, after",
+         lambda i, c: _scan_cell(i.get("misfit_scan"))),
         ("Last refreshes: paths per sample pixel", lambda i, c: _cell(i.get("final_paths"))),
         ("Their move: &kappa;<sub>t</sub> [relative], g", lambda i, c: _final_move_cell(
             i.get("final_move"))),
@@ -404,19 +428,7 @@ def _ms_section(results: dict) -> str:
     rows = [r for r in rows if any(x != "&mdash;" for x in r[1:])]
     return ("<h2>Multiple scattering</h2>\n"
             + _table(["Field"] + [f"Channel {html.escape(c)}" for c in ms], rows)
-            + '<p class="muted">Share: the multiple-scattering term over the glow (pixels off the bulb), '
-              "with its Monte Carlo standard error; the moves are those of the fit in posterior sd "
-              "of log &kappa;<sub>t</sub> and atanh g; the move with other random numbers is in "
-              "units of the sd the term's error (its jackknife, included in the intervals) gives "
-              "it; a second fit far from the first means the images do not decide between them; "
-              "where the first fit's refreshes did not settle but crept towards where the second "
-              "one ended, the refreshes went on from there (approached from both sides); the last "
-              "refreshes trace more paths, which removes most of the offset the term's own noise "
-              "gives the values, and their move is how far that went; a share of that move may "
-              "remain, and is in the intervals as the offset's sd (docs/inference.md); with single "
-              "scattering, the rise of &chi;&sup2;/pixel is what the term would cause were it in "
-              "the images, which the misfit guard sees only where it is well above the guard's "
-              "room (docs/results.md, 'The single-scattering check').</p>\n")
+            + _MS_CAPTION)
 
 
 def _term_sd_cell(sd: Any) -> str:
@@ -436,6 +448,16 @@ def _final_move_cell(v: Any) -> str:
 def _yes_no(v: Any) -> str:
     """A flag's cell: yes, no, or a dash where results.json does not have it."""
     return {True: "yes", False: "no"}.get(v, "&mdash;")
+
+
+def _scan_cell(v: Any) -> str:
+    """The misfit scan's cell (results.json's ``misfit_scan``): chi2/pixel before and after,
+    and whether its fit was kept."""
+    if not isinstance(v, dict):
+        return "&mdash;"
+    return (f"{_cell(_num(v.get('chi2_per_pixel_before')), 3)}, "
+            f"{_cell(_num(v.get('chi2_per_pixel_after')), 3)} "
+            f"({'kept' if v.get('used') else 'not kept'})")
 
 
 def _restart_cell(v: Any) -> str:
