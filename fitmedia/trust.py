@@ -196,7 +196,10 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"a second full-transport fit of channel {ch}, started further along the "
                 f"direction in which multiple scattering moves the values, ended {restart:.2g} sd "
                 f"away (kappa_t {second.get('kappa_t', float('nan')):.4g}, g "
-                f"{second.get('g', float('nan')):.3g}): the images do not decide between the two, "
+                f"{second.get('g', float('nan')):.3g}"
+                + ("" if worse is None else f"; its log posterior {worse:+.3g} units from the "
+                   f"values', within {RESTART_DELTA:.3g}")
+                + "): the images do not decide between the two, "
                 f"and the values of channel {ch} are not determined to within their intervals")
         move = ms.get("final_move") or {}
         if move and not (abs(move.get("kappa_t", np.nan)) <= FINAL_MOVE_KAPPA_T

@@ -826,7 +826,10 @@ def test_a_restart_the_images_decide_against_is_no_reason_and_one_they_prefer_is
     assert len(transport_reasons({"G": {"multiple_scattering": far}})) == 1
     for delta, n in ((-RESTART_DELTA - 40.0, 0), (-RESTART_DELTA + 3.0, 1), (None, 1)):
         ms = {**far, "restart_delta_log_posterior": delta}
-        assert len(transport_reasons({"G": {"multiple_scattering": ms}})) == n, delta
+        reasons = transport_reasons({"G": {"multiple_scattering": ms}})
+        assert len(reasons) == n, delta
+        if delta is not None and n:  # the reason says how close the two came
+            assert f"log posterior {delta:+.3g} units" in reasons[0], reasons
 
 
 def test_restart_delta_compares_the_two_fixed_points_each_with_its_own_local_model(rng):
