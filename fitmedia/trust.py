@@ -187,20 +187,7 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"{other['g']:.3g}, kappa_t {other['kappa_t']:.4g}) fits within "
                 f"{-other['delta_log_posterior']:.2g} log-posterior units of the values given: "
                 f"the sign of g in channel {ch} is not determined by the images")
-        restart = ms.get("restart_shift_sd")
-        worse = ms.get("restart_delta_log_posterior")
-        if restart is not None and not restart <= RESTART_SD \
-                and not (worse is not None and worse < -RESTART_DELTA):
-            second = ms.get("restart_values") or {}
-            _add(reasons, "restart", 
-                f"a second full-transport fit of channel {ch}, started further along the "
-                f"direction in which multiple scattering moves the values, ended {restart:.2g} sd "
-                f"away (kappa_t {second.get('kappa_t', float('nan')):.4g}, g "
-                f"{second.get('g', float('nan')):.3g}"
-                + ("" if worse is None else f"; its log posterior {worse:+.3g} units from the "
-                   f"values', within {RESTART_DELTA:.3g}")
-                + "): the images do not decide between the two, "
-                f"and the values of channel {ch} are not determined to within their intervals")
+        _restart_reason(reasons, ch, ms)
         move = ms.get("final_move") or {}
         if move and not (abs(move.get("kappa_t", np.nan)) <= FINAL_MOVE_KAPPA_T
                          and abs(move.get("g", np.nan)) <= FINAL_MOVE_G):
@@ -226,6 +213,25 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
                 f"values of channel {ch} by {shift:.2g} times the sd its stated Monte Carlo error "
                 "gives such a move; the intervals understate that error")
     return reasons
+
+
+def _restart_reason(reasons: list, ch: str, ms: dict) -> None:
+    """transport_reasons' restart check: a second fit that ended more than ``RESTART_SD`` sd
+    away, unless it settled more than ``RESTART_DELTA`` log-posterior units below the MAP."""
+    restart = ms.get("restart_shift_sd")
+    worse = ms.get("restart_delta_log_posterior")
+    if restart is None or restart <= RESTART_SD or (worse is not None and worse < -RESTART_DELTA):
+        return
+    second = ms.get("restart_values") or {}
+    _add(reasons, "restart",
+         f"a second full-transport fit of channel {ch}, started further along the "
+         f"direction in which multiple scattering moves the values, ended {restart:.2g} sd "
+         f"away (kappa_t {second.get('kappa_t', float('nan')):.4g}, g "
+         f"{second.get('g', float('nan')):.3g}"
+         + ("" if worse is None else f"; its log posterior {worse:+.3g} units from the "
+            f"values', within {RESTART_DELTA:.3g}")
+         + "): the images do not decide between the two, "
+         f"and the values of channel {ch} are not determined to within their intervals")
 
 
 def sampler_reasons(chans: dict[str, dict]) -> list[str]:
