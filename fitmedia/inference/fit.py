@@ -513,14 +513,16 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
 
 def _misfit_scan(problem: ChannelProblem, space: ParameterSpace, check, single_x: np.ndarray,
                  channel: str, scanned: bool = False) -> tuple:
-    """For a bulb (not ``scanned`` already from the start, as a spot is) whose full-transport fit ``check`` (``full.RestartCheck``, at the loop's
-    paths) fails the misfit guard there (trust.py: ``misfit``): the spot's scan from the
+    """For a bulb (not ``scanned`` from the start, as a spot is) whose full-transport fit
+    ``check`` (``full.RestartCheck``, at the loop's paths) fails the misfit guard there
+    (trust.py: ``misfit``): the spot's scan from the
     single-scattering MAP ``single_x`` (``full.scan_start``), the loop and the restart check
     from its best point, and the better of the two fits (each log posterior with the local
     model rebuilt there) kept.  The loop's start decides which of its fixed points it ends at,
     and from the single-scattering MAP of dense milk it may end at one that does not describe
-    the images (Regular Milk 60 ml at 100 x 75 px, G: chi2/pixel 2.94, the noise allowing 1.2;
-    from the scan's best start 1.04: docs/inference.md, "Dense milk at 100 x 75").  Returns
+    the images (Regular Milk 60 ml at 100 x 75 px, G: chi2/pixel 2.83 at the loop's end, the
+    noise allowing 1.23; from the scan's best start 1.04 in the end: docs/inference.md, "Dense
+    milk at 100 x 75").  Returns
     the check kept and results.json's ``misfit_scan`` (None where the guard held)."""
     from ..trust import misfit
     from .full import log_posterior_rebuilt, refine_map, restart_check, scan_start
