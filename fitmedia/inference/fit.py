@@ -515,14 +515,13 @@ def _misfit_scan(problem: ChannelProblem, space: ParameterSpace, check, single_x
                  channel: str, scanned: bool = False) -> tuple:
     """For a bulb (not ``scanned`` from the start, as a spot is) whose full-transport fit
     ``check`` (``full.RestartCheck``, at the loop's paths) fails the misfit guard there
-    (trust.py: ``misfit``): the spot's scan from the
-    single-scattering MAP ``single_x`` (``full.scan_start``), the loop and the restart check
-    from its best point, and the better of the two fits (each log posterior with the local
-    model rebuilt there) kept.  The loop's start decides which of its fixed points it ends at,
-    and from the single-scattering MAP of dense milk it may end at one that does not describe
-    the images (Regular Milk 60 ml at 100 x 75 px, G: chi2/pixel 2.83 at the loop's end, the
-    noise allowing 1.23; from the scan's best start 1.04 in the end: docs/inference.md, "Dense
-    milk at 100 x 75").  Returns
+    (trust.py: ``misfit``): the spot's scan from the single-scattering MAP ``single_x``
+    (``full.scan_start``), the loop and the restart check from its best point, and the better
+    of the two fits (each log posterior with the local model rebuilt there) kept.  The loop's
+    start decides which of its fixed points it ends at, and from the single-scattering MAP of
+    dense milk it may end at one that does not describe the images (Regular Milk 60 ml at
+    100 x 75 px, G: chi2/pixel 2.83 at the loop's end, the noise allowing 1.23; from the
+    scan's best start 1.04 in the end: docs/inference.md, "Dense milk at 100 x 75").  Returns
     the check kept and results.json's ``misfit_scan`` (None where the guard held)."""
     from ..trust import misfit
     from .full import log_posterior_rebuilt, refine_map, restart_check, scan_start
@@ -531,10 +530,11 @@ def _misfit_scan(problem: ChannelProblem, space: ParameterSpace, check, single_x
         return check, None
     lp = log_posterior_rebuilt(problem, check.res.x)
     chi2, n = problem.chi2(check.res.x)
-    if misfit(chi2 / max(n, 1), n)["ok"] is not False:
+    before = chi2 / max(n, 1)
+    if misfit(before, n)["ok"] is not False:
         return check, None
     log.info("full transport, channel %s: chi2/pixel %.3g at the fit does not describe the "
-             "images; scanning for another start", channel, chi2 / max(n, 1))
+             "images; scanning for another start", channel, before)
     start = MapResult(single_x.copy(), float("nan"), 0, None)  # scan_start reads its x
     best, rows = scan_start(problem, space, start)
     res, info = refine_map(problem, space, best)
@@ -545,7 +545,7 @@ def _misfit_scan(problem: ChannelProblem, space: ParameterSpace, check, single_x
     kept = other if used else check
     problem.refresh_models(kept.res.x)
     problem.adapt(kept.res.x)
-    return kept, {"rows": rows, "chi2_per_pixel_before": chi2 / max(n, 1),
+    return kept, {"rows": rows, "chi2_per_pixel_before": before,
                   "chi2_per_pixel_after": chi2_other, "delta_log_posterior": lp_other - lp,
                   "used": bool(used)}
 
