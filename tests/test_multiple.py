@@ -324,6 +324,45 @@ def test_bad_input_is_named():
         MultipleScattering(spec, None, n_paths=8, batches=4).render(0.0, 0.01, 1.0, 1.0)
 
 
+def test_refresh_at_the_same_point_reuses_the_trace_and_nothing_else(seed):
+    """``FullTransport.refresh`` skips a trace whose point, paths, grid and seed are those of
+    the local model it has.  Independent check that skipping loses nothing: a fresh model with
+    the same seed traces the same numbers bit for bit (the random numbers are a function of
+    the seed), so the skipped trace would have been identical.  Controls: another point,
+    another seed, more paths and a local model put back by ``models_kept``-style restoration
+    (its key is its own point's) each trace again."""
+    spec = make_spec(width=16, height=12)
+    kt, a, g = MILK["kt"], MILK["albedo"], MILK["g"]
+    args = ([kt * (1 - a)], [kt * a], [g])
+    ft = FullTransport(spec, None, channels=("G",), bin=2, n_paths=16, batches=8, seed=seed)
+    calls = []
+    orders_at = ft.ms.orders_at
+    ft.ms.orders_at = lambda *a_, **k_: calls.append(1) or orders_at(*a_, **k_)
+    ft.refresh(*args)
+    first = ft._local[0]["order_major"].copy()
+    ft.refresh(*args)
+    assert len(calls) == 1, "the same point traced twice"
+    twin = FullTransport(spec, None, channels=("G",), bin=2, n_paths=16, batches=8, seed=seed)
+    twin.refresh(*args)
+    np.testing.assert_array_equal(twin._local[0]["order_major"], first)
+    kept = (ft._local, ft._var0)
+    other = ([kt * 1.2 * (1 - a)], [kt * 1.2 * a], [g])
+    ft.refresh(*other)
+    assert len(calls) == 2
+    ft._local, ft._var0 = kept  # put back, as models_kept does
+    ft.refresh(*other)
+    assert len(calls) == 3, "a restored local model was taken for the last point's"
+    ft.refresh(*args)
+    assert len(calls) == 4
+    np.testing.assert_array_equal(ft._local[0]["order_major"], first)
+    ft.seed += 1
+    ft.refresh(*args)
+    assert len(calls) == 5
+    ft.ms.n_paths *= 2
+    ft.refresh(*args)
+    assert len(calls) == 6
+
+
 def test_full_transport_local_model(seed):
     """At the refresh point the local model is the direct estimate (same random numbers), and
     exact in the albedo anywhere; a step of 0.2 in log kappa_t is predicted to within 50 % of

@@ -477,6 +477,10 @@ class FullTransport:
         c = len(self.channels)
         ka, ks, gg, _ = check_render_args(c, kappa_a, kappa_s, g,
                                           1.0 if brightness is None else brightness)
+        keys = [self._trace_key(ka[k], ks[k], gg[k]) for k in range(c)]
+        if self._local is not None and [None if loc is None else loc.get("key")
+                                        for loc in self._local] == keys:
+            return  # the same point, paths, grid and seed: the same trace (deterministic)
         local = []
         for k in range(c):
             kt, a = ka[k] + ks[k], (ks[k] / (ka[k] + ks[k]) if ks[k] > 0 else 0.0)
@@ -492,12 +496,26 @@ class FullTransport:
             # batch's derivatives leave with it (leave_out) and their noise is in the variance
             local.append(_with_order_major({"kt": kt, "eta": eta, "batches": base,
                                             "d_kt": (runs[1] - base) / self.step,
-                                            "d_g": (runs[2] - base) / self.step}))
+                                            "d_g": (runs[2] - base) / self.step,
+                                            "key": keys[k]}))
         self._local = local
         # the term's Monte Carlo variance at the refresh point, unit brightness
         # (render_with_variance: what it changes by away from there; a spot has none)
         self._var0 = None if self.ms.photons is None else \
             self.ms_part(ka, ks, gg, np.ones(c), excess=True, variance=False)[2]
+
+    def _trace_key(self, kappa_a: float, kappa_s: float, g: float) -> tuple | None:
+        """What one channel's trace in ``refresh`` depends on: the point (kappa_a, kappa_s,
+        g; the albedo sets the paths' Russian roulette), the finite-difference step, the seed
+        and the term's grid and paths.  Two traces with the same key are the same numbers
+        (the random numbers are a function of the seed: tests/test_multiple.py), so
+        ``refresh`` skips one whose keys all match the local model it has; the key lives in
+        the local model, so a local model put back (``models_kept``) brings its own.  None
+        for a channel without scattering."""
+        if kappa_s <= 0:
+            return None
+        return (float(kappa_a), float(kappa_s), float(g), self.step, self.seed,
+                self.ms.bin, self.ms.n_paths, self.ms.batches)
 
     def needs_refresh(self, kappa_a, kappa_s, g, tol: float = 0.1) -> bool:
         """True when no local model exists or (log kappa_t, atanh g) of a scattering channel
