@@ -138,7 +138,9 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
     raw = copy.deepcopy(spec.raw)
     raw.pop("images", None)
     raw.pop("calibration", None)
-    raw.pop("channels", None)
+    # ``channels`` (the channels to fit) is kept: the images hold R, G and B and truth.json
+    # all three, and a fit of the capture fits the ones its spec names (until 2026-12-06 it
+    # was dropped, and a one-channel study's capture fitted all three)
     raw["name"] = f"synthetic-{medium_name or 'medium'}".replace(" ", "-").lower()
     if light.type == "spot":
         raw["light"]["intensity"] = bright.tolist()  # a spot cannot be calibrated by a photo

@@ -89,3 +89,27 @@ def test_hybrid_capture_states_its_term_noise_against_the_camera(tmp_path, capsy
                  "--out", str(out)]) == 0
     truth = json.loads((out / "truth.json").read_text())
     assert "ms_term_error_to_camera_noise" not in truth["images"][0] and not truth["notes"]
+
+
+def test_synth_keeps_the_specs_channels(tmp_path):
+    """A geometry spec that names the channels to fit (``channels: [G]``) gives a capture
+    whose spec names them too (what the user asked for, not all three), while the images
+    and truth.json still hold R, G and B.  Control: a spec without ``channels`` gives a
+    capture without it (the default, all three)."""
+    from fitmedia.cli import main
+    from fitmedia.images import read_image
+    from fitmedia.spec import load_spec
+
+    for name, extra in (("g", {"channels": ["G"]}), ("all", {})):
+        geo = tmp_path / f"{name}.yaml"
+        geo.write_text(yaml.safe_dump({**geometry_dict(width=16, height=12), **extra}))
+        assert main(["synth", str(geo), "--medium", "Lowfat Milk", "--ml", "16", "--out",
+                     str(tmp_path / name), "--seed", "1"]) == 0
+    spec = load_spec(tmp_path / "g" / "capture.yaml")
+    assert tuple(spec.channels) == ("G",)
+    assert yaml.safe_load((tmp_path / "all" / "capture.yaml").read_text()).get("channels") is None
+    assert tuple(load_spec(tmp_path / "all" / "capture.yaml").channels) == ("R", "G", "B")
+    img, _ = read_image(spec.images[0].paths[0])
+    assert img.shape[-1] == 3
+    truth = json.loads((tmp_path / "g" / "truth.json").read_text())
+    assert set(truth["undiluted"]["kappa_s"]) == {"R", "G", "B"}
