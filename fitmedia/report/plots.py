@@ -279,8 +279,10 @@ def image_figure(data: np.ndarray, model: np.ndarray, valid: np.ndarray, channel
         imr = axes[k, -1].imshow(shown_r, cmap=rcmap,
                                  norm=Normalize(-RESIDUAL_LIMIT, RESIDUAL_LIMIT),
                                  interpolation="nearest")
+        # the grey count on a line of its own: on one line the title ran into the
+        # colour bar beside it (seen at 5 panels a row, 2026-12-06)
         axes[k, -1].set_title(f"{ch}: residual, χ²/pixel = {chi2[ch]:.3g}"
-                             + (f", {n_bad} px grey" if n_bad else ""), fontsize=10)
+                             + (f"\n{n_bad} px grey (not fitted)" if n_bad else ""), fontsize=10)
         cbr = fig.colorbar(imr, ax=axes[k, -1], shrink=0.9, extend="both", pad=0.01)
         cbr.set_label("(data − model) / σ\n[standard deviations]", fontsize=8)
         for ax in axes[k]:
