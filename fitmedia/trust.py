@@ -144,8 +144,9 @@ SEED_SHIFT_Z = 3.0
 RESTART_SD = 3.0
 #: ... unless it settled where the log posterior (the local model rebuilt there) is more than
 #: this many units below the MAP's: a fixed point of the loop that the images decide against
-#: (``restart_delta_log_posterior``; inference/full.py: ``RESTART_DELTA``, the bound for a
-#: second mode)
+#: (``restart_delta_log_posterior``, the part of the difference beyond the term's noise over
+#: seeds; inference/full.py: ``RESTART_DELTA``, the bound for a second mode, and
+#: ``delta_beyond_noise``)
 RESTART_DELTA = FULL_RESTART_DELTA
 #: the last refreshes, at 8 times the paths (inference/full.py: more_paths), move the values
 #: from the loop's fixed point by most of the offset the term's own noise gave it; a share of
@@ -229,7 +230,7 @@ def _restart_reason(reasons: list, ch: str, ms: dict) -> None:
          f"away (kappa_t {second.get('kappa_t', float('nan')):.4g}, g "
          f"{second.get('g', float('nan')):.3g}"
          + ("" if worse is None else f"; its log posterior {worse:+.3g} units from the "
-            f"values', within {RESTART_DELTA:.3g}")
+            f"values' beyond the term's own noise, within {RESTART_DELTA:.3g}")
          + "): the images do not decide between the two, "
          f"and the values of channel {ch} are not determined to within their intervals")
 

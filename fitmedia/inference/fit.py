@@ -453,11 +453,10 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                     channel: str, options: FitOptions, seed: int, alt=None) -> tuple:
     """``--model full`` / ``auto`` from the single-scattering MAP ``res``: the multiple-
     scattering share there, and (full, or auto: :func:`_auto_choice`) the full-transport MAP
-    and the checks on it (inference/full.py).  ``alt``: the single-scattering optimum with g of
-    the other sign, if one was found; refined with the full model too, the better one kept
-    (``full_other_mode_map``, its MapResult with the log posterior that puts it its measured
-    distance below the MAP, for ``other_g_mode`` and the sampler: :func:`fit_channel`).
-    Returns the MAP and ``fit_channel``'s fields."""
+    and its checks (inference/full.py); ``alt``, the single optimum with g of the other sign
+    if one was found, refined with the full model too and the better one kept (its MapResult
+    ``full_other_mode_map``, its log posterior its measured distance below the MAP's, for
+    ``other_g_mode`` and the sampler).  Returns the MAP and ``fit_channel``'s fields."""
     from .full import (distance_sd, more_paths, ms_images, ms_share, offset_budget, refine_map,
                        restart_check, restart_in_loop_units, seed_shift, term_jackknife,
                        use_full_transport, use_single_scattering)
@@ -483,7 +482,7 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     # the checks on the loop's fixed point, at the loop's paths (and a bulb's misfit's scan)
     check, out["ms_misfit_scan"] = _misfit_scan(problem, space, restart_check(
         problem, space, res, info, single_x, channel), single_x, channel, scan is not None)
-    res, info, restart, adopted, term_cov, _ = check
+    res, info, restart, adopted, term_cov = check[:5]
     shift = seed_shift(problem, space, res, spec, channel, seed=check_seed, term_cov=term_cov)
     # then the last refreshes with more paths, and the values and their term error from there
     loop, loop_term = res, term_cov
@@ -496,7 +495,8 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                full_moves_term=both.moves_term, full_midpoints=both.midpoints,
                full_extrapolated=both.extrapolated,
                full_converged=info.converged and last.converged, ms_term_cov=term_cov,
-               ms_restart_adopted=adopted, ms_restart_delta=None if adopted else check.delta,
+               ms_restart_adopted=adopted, **({} if adopted else {  # adopted: no 2nd
+                   "ms_restart_delta": check.delta, "ms_restart_delta_seeds": check.delta_seeds}),
                ms_restart_shift_sd=None if adopted else  # no 2nd
                restart_in_loop_units(problem, loop, restart.x, loop_term, res.x),
                ms_restart_values={"kappa_t": float(np.exp(restart.x[0])), "g": float(np.tanh(restart.x[2]))},
