@@ -18,8 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ..inference.sample import OTHER_MODE_DELTA  # = inference/full.py's RESTART_DELTA
-from ..trust import sampler_reasons
+from ..trust import RESTART_DELTA, sampler_reasons
 from ..version import __version__
 from ..errors import InputError
 from ..regimes import INFORMATIVE_OPTICAL_DEPTH
@@ -366,9 +365,11 @@ _MS_CAPTION = (
     "of log &kappa;<sub>t</sub> and atanh g; the move with other random numbers is in "
     "units of the sd the term's error (its jackknife, included in the intervals) gives "
     "it; a second fit far from the first means the images do not decide between them, "
-    f"unless its log posterior is more than {OTHER_MODE_DELTA:g} below the MAP's (the images "
-    f"decide against it); where it is more than {OTHER_MODE_DELTA:g} above, or where the first fit's refreshes did not "
-    "settle but crept towards where the second one ended, the refreshes went on from "
+    "unless its log posterior, beyond the term's own noise over seeds, is more than "
+    f"{RESTART_DELTA:g} below the MAP's (the images "
+    f"decide against it); where it is more than {RESTART_DELTA:g} above, or where the "
+    "first fit's refreshes did not settle but crept towards where the second one ended, "
+    "the refreshes went on from "
     "there; where the fit did not describe the images (the misfit guard), it was scanned "
     "from other starts and the better fit kept; the last "
     "refreshes trace more paths, which removes most of the offset the term's own noise "
