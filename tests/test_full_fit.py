@@ -596,8 +596,11 @@ def test_offset_budget_is_a_share_of_the_last_move_along_it():
     F x 256 paths (F = FINAL_PATHS_FACTOR) at F x 256, which is OFFSET_SHARE at p = 1/2 (1/3
     at F = 16, 0.55 at F = 8) and less for the faster falls measured (p 0.58-1); the budget
     is rank one along the move with that sd per coordinate, leaves
-    out logit albedo on its plateau (Laplace sd above ALBEDO_HELD_SD), and fit's
+    out logit albedo on its plateau (Laplace sd above ALBEDO_HELD_SD), takes logit albedo's
+    part from the albedo's own move where that is smaller (a loop on the plateau), and fit's
     _with_term_error adds it to the Laplace covariance with the jackknife's."""
+    from scipy.special import expit
+
     from fitmedia.inference.fit import _with_term_error
     from fitmedia.inference.full import ALBEDO_HELD_SD, offset_budget
 
@@ -612,8 +615,31 @@ def test_offset_budget_is_a_share_of_the_last_move_along_it():
     cov = np.diag([1e-4, 0.04, 1e-4, 1e-6])
     budget = offset_budget(MapResult(final_x, 0.0, 1, cov), loop_x)
     d = OFFSET_SHARE * (final_x - loop_x)
+    # logit albedo's part: the smaller of its move and the albedo's own move through logit's
+    # slope at the final point; here (albedos 0.62 and 0.69) the two are within 6 % and the
+    # logit move is the smaller
+    a, a0 = expit(final_x[1]), expit(loop_x[1])
+    assert 0.3 < (a - a0) / (a * (1 - a)) < 1.06 * 0.3
     assert np.allclose(np.sqrt(np.diag(budget)), np.abs(d))
     assert np.linalg.matrix_rank(budget) == 1 and np.allclose(budget @ d, (d @ d) * d)
+    # a loop that ended on the albedo's plateau (logit 14.7, kappa_a unresolved) and last
+    # refreshes that resolved it (logit 3.4): the budget in albedo is OFFSET_SHARE of the
+    # albedo's move (about 0.03), not of logit's 11.3, which put albedos of 0 to 1 into the
+    # samples of White Grapefruit Juice 160 ml's G (docs/inference.md)
+    plateau_loop = np.array([np.log(0.526), 14.7, np.arctanh(0.551), 0.0])
+    resolved = np.array([np.log(0.555), 3.4, np.arctanh(0.545), 0.0])
+    b = offset_budget(MapResult(resolved, 0.0, 1, np.diag([1e-4, 0.09, 1e-4, 1e-6])), plateau_loop)
+    a = expit(3.4)
+    sd_albedo = np.sqrt(b[1, 1]) * a * (1 - a)  # back to albedo units at the final point
+    assert sd_albedo == pytest.approx(OFFSET_SHARE * (expit(14.7) - a), rel=1e-6)
+    assert np.sqrt(b[1, 1]) < 0.1 * OFFSET_SHARE * 11.3
+    assert np.sqrt(b[0, 0]) == pytest.approx(OFFSET_SHARE * np.log(0.555 / 0.526))
+    # the other way (a loop that resolved the albedo, a final point near 1 but resolved too):
+    # never more than the logit move
+    near_one = resolved.copy()
+    near_one[1] = 9.0
+    b = offset_budget(MapResult(near_one, 0.0, 1, np.diag([1e-4, 0.5, 1e-4, 1e-6])), resolved)
+    assert np.sqrt(b[1, 1]) == pytest.approx(OFFSET_SHARE * 5.6)
     plateau = cov.copy()
     plateau[1, 1] = (2 * ALBEDO_HELD_SD) ** 2
     held = offset_budget(MapResult(final_x, 0.0, 1, plateau), loop_x)
