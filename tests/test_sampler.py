@@ -307,3 +307,49 @@ def test_walkers_start_where_the_posterior_is_not_negligible(seed):
     assert np.all(drop_start <= START_MAX_DROP)
     kept = drop <= START_MAX_DROP
     np.testing.assert_array_equal(start[kept], ball[kept])
+
+
+def test_a_map_stopped_on_a_plateau_is_polished_from_the_best_sample(rng):
+    """fit.map_from_samples against an analytic posterior with a plateau: a normal in
+    (log kappa_t, logit albedo, atanh g, log brightness) whose logit-albedo term is flat beyond
+    8 (the albedo's plateau, kappa_a -> 0, where a local search started at 14.7 has no
+    gradient and stops: White Grapefruit Juice 160 ml's R at 100 x 75, docs/inference.md).
+    Given the plateau point as the MAP and samples drawn around the mode, the MAP is polished
+    to the mode (within 1e-3) with the analytic gain; a MAP at the mode, samples of the other
+    sign of g only, or a sample whose stored log_prob lies (problem.log_posterior is the judge)
+    change nothing."""
+    from types import SimpleNamespace
+
+    from fitmedia.inference.fit import MAP_SAMPLE_TOL, map_from_samples
+    from fitmedia.inference.optimize import MapResult
+
+    mode, sd = np.array([-0.66, 3.5, 0.62, 0.0]), np.array([0.01, 0.5, 0.01, 0.005])
+
+    def log_post(u):
+        u = np.asarray(u, float).copy()
+        u[1] = min(u[1], 8.0)  # flat beyond 8
+        return float(-0.5 * np.sum(((u - mode) / sd) ** 2))
+
+    lower, upper = np.array([-5.0, -15.0, -3.0, -1.0]), np.array([5.0, 15.0, 3.0, 1.0])
+    problem = SimpleNamespace(log_posterior=log_post)
+    space = SimpleNamespace(lower=lower, upper=upper)
+    stuck = np.array([-0.69, 14.7, 0.625, -0.008])
+    res = MapResult(stuck, log_post(stuck), 100, None)
+    samples = mode + sd * rng.standard_normal((2000, 4))
+    lp = np.array([log_post(s) for s in samples])
+    new = map_from_samples(problem, space, res, samples, lp)
+    assert new is not None
+    assert np.allclose(new.x, mode, atol=1e-3), new.x
+    gain = new.log_posterior - res.log_posterior
+    assert gain == pytest.approx(-log_post(stuck), rel=1e-4) and gain > MAP_SAMPLE_TOL
+    assert new.n_evals > res.n_evals
+    # already at the mode: nothing to polish
+    at_mode = MapResult(mode.copy(), log_post(mode), 100, None)
+    assert map_from_samples(problem, space, at_mode, samples, lp) is None
+    # the samples all of the other sign of g: not this mode's
+    other = samples.copy()
+    other[:, 2] *= -1
+    assert map_from_samples(problem, space, res, other, lp) is None
+    # a stored log_prob that claims more than the posterior gives: the posterior decides
+    near = np.tile(stuck, (5, 1))
+    assert map_from_samples(problem, space, res, near, np.full(5, 1e9)) is None

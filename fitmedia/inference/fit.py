@@ -282,17 +282,20 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
     other_mode = None if alt is None else {
         "g": float(np.tanh(alt.x[2])), "kappa_t": float(np.exp(alt.x[0])),
         "delta_log_posterior": float(alt.log_posterior - res.log_posterior)}
-    out = {"channel": channel, "names": space.names, "x_map": res.x, "map_logp": res.log_posterior,
-           "n_evals": res.n_evals, "laplace_cov": _with_term_error(res.cov, transport),
-           "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
-           "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
-           "chi2_images": problem.chi2_images(res.x),
+    out = {"channel": channel, "names": space.names, **_map_fields(problem, space, res, transport),
            "valid_images": [o.valid for o in problem.obs],
-           "var_images": problem.variance_images(res.x),
            "free_brightness": setup.free, "space": space, "other_g_mode": other_mode, **transport}
     if options.mcmc:
         out.update(_sample_channel(problem, space, res, alt, other_mode, options, rng,
                                    checkpoint, [seed, CHANNELS.index(channel)], channel, identity))
+        better = map_from_samples(problem, space, res, out["samples"], out["log_prob"])
+        if better is not None:  # the optimizer had stopped short of the posterior's mode
+            gain = better.log_posterior - res.log_posterior
+            out.update(_map_fields(problem, space, better, transport),
+                       map_from_samples={"delta_log_posterior": float(gain),
+                                         "optimizer_x": res.x.tolist()})
+            if other_mode is not None:
+                other_mode["delta_log_posterior"] -= float(gain)
         term = _term_error(transport)
         if term is not None:
             from .full import convolve_samples
@@ -300,6 +303,50 @@ def fit_channel(spec: Spec, channel: str, data: list[np.ndarray], valid: list[np
             out["samples"] = convolve_samples(out["samples"], term,
                                               np.random.default_rng([seed, CHANNELS.index(channel), 6]))
     return out
+
+
+#: a posterior sample more than this many log-posterior units above the MAP's says the MAP
+#: search stopped short of the mode (``map_from_samples``)
+MAP_SAMPLE_TOL = 1.0
+
+
+def map_from_samples(problem, space: ParameterSpace, res, samples: np.ndarray,
+                     log_prob: np.ndarray):
+    """The MAP polished from the sampler's best sample on the MAP's side of g, where that ends
+    more than ``MAP_SAMPLE_TOL`` above the MAP ``res`` (by ``problem.log_posterior`` itself,
+    not the chain's stored values); else None.  A local search can stop on a plateau: the
+    albedo's near its upper bound, where kappa_a -> 0 changes nothing and the gradient
+    vanishes.  Measured (White Grapefruit Juice 160 ml, R, 100 x 75, --model full): the MAP at
+    logit albedo 14.7 (kappa_a 0, kappa_t 0.501 1/mm), the samples' best 7.3 units above it at
+    3.52 (kappa_a 0.0138, kappa_t 0.516; truth 0.0138 and 0.519), and the report flagged
+    "albedo at the prior's upper bound" for a kappa_a the posterior resolves."""
+    if samples is None or log_prob is None or not len(log_prob):
+        return None
+    same = np.sign(samples[:, 2]) == np.sign(res.x[2])
+    if not np.any(same):
+        return None
+    lp = np.where(same & np.isfinite(log_prob), log_prob, -np.inf)
+    best = samples[int(np.argmax(lp))]
+    if not problem.log_posterior(best) > res.log_posterior + MAP_SAMPLE_TOL:
+        return None
+    new = find_map(problem.log_posterior, np.clip(best, space.lower, space.upper), space.lower,
+                   space.upper, global_evals=0)
+    if not new.log_posterior > res.log_posterior + MAP_SAMPLE_TOL:
+        return None
+    log.info("the MAP search had stopped %.3g log-posterior units below a posterior sample; "
+             "the MAP is polished from there", new.log_posterior - res.log_posterior)
+    new.n_evals += res.n_evals
+    return new
+
+
+def _map_fields(problem, space: ParameterSpace, res, transport: dict) -> dict:
+    """``fit_channel``'s fields that describe the MAP ``res``."""
+    return {"x_map": res.x, "map_logp": res.log_posterior, "n_evals": res.n_evals,
+            "laplace_cov": _with_term_error(res.cov, transport),
+            "map": {k: float(np.asarray(v)) for k, v in space.physical_samples(res.x).items()},
+            "model_images": problem.render(res.x), "chi2": problem.chi2(res.x),
+            "chi2_images": problem.chi2_images(res.x),
+            "var_images": problem.variance_images(res.x)}
 
 
 def _term_error(transport: dict) -> np.ndarray | None:

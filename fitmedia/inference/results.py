@@ -92,6 +92,8 @@ def _channel_info(prep: Prepared, ch: str, f: dict, phys: dict, params: dict,
             "brightness_calibration_rel_sd": prep.brightness_rel_sd.get(ch),
             "brightness": f["map"].get("brightness", prep.brightness[ch]),
             "other_g_mode": f.get("other_g_mode"), "optical_depth_regime": regime(taus)}
+    if f.get("map_from_samples"):  # the MAP search had stopped short (fit.map_from_samples)
+        info["map_from_samples"] = f["map_from_samples"]
     if "samples" in f:
         info.update(_sampler_info(f, phys, {q: params[q][ch] for q in QUANTITIES}))
         info["albedo_prior_envelope"] = _envelope_info(phys, weights)
