@@ -988,3 +988,43 @@ def test_a_bulb_fit_that_misfits_is_scanned_from_other_starts(rng):
     assert len(scan["rows"]) == 12
     for j in (0, 2):
         assert abs(kept.res.x[j] - truth[j]) < 3 * _sd(kept.res, j), (j, kept.res.x, truth)
+
+
+def test_a_refresh_polish_stuck_on_the_albedo_plateau_is_moved_off_it_where_the_images_say_so():
+    """inference/full.py's off_the_plateau against an analytic posterior in the sampler's
+    coordinates (log kappa_t, logit albedo, atanh g, log brightness): normal in kappa_s and
+    kappa_a with kappa_a resolved (0.0138 +- 0.004 1/mm, kappa_s 0.502: White Grapefruit Juice
+    160 ml's R, whose refreshes all stayed at logit albedo 14.7).  A polish stuck at 14.7,
+    where the gradient along logit albedo vanishes, is moved to the mode (kappa_a and kappa_s
+    within 1e-4 1/mm, the analytic gain); where the images want no absorption (the mode at
+    kappa_a = 0) or the polish is not on the plateau, it is returned unchanged."""
+    from scipy.special import expit
+
+    from fitmedia.inference.full import PLATEAU_GAIN, off_the_plateau
+
+    def make(resolved):
+        def log_post(u):
+            kt = np.exp(u[0])
+            ks, ka = kt * expit(u[1]), kt * expit(-u[1])
+            lp = -0.5 * ((ks - 0.502) / 0.002) ** 2 - 0.5 * ((u[2] - 0.62) / 0.01) ** 2
+            lp -= 0.5 * (u[3] / 0.005) ** 2
+            return float(lp - 0.5 * ((ka - (0.0138 if resolved else 0.0)) / 0.004) ** 2)
+        return SimpleNamespace(log_posterior=log_post)
+
+    lo, hi = np.array([-3.0, -15.0, -1.5, -0.5]), np.array([2.0, 15.0, 2.5, 0.5])
+    stuck = np.array([np.log(0.502), 14.7, 0.62, 0.0])
+    problem = make(True)
+    res = MapResult(stuck, problem.log_posterior(stuck), 10, None)
+    new = off_the_plateau(problem, res, lo, hi)
+    kt = np.exp(new.x[0])
+    assert kt * expit(new.x[1]) == pytest.approx(0.502, abs=1e-4)
+    assert kt * expit(-new.x[1]) == pytest.approx(0.0138, abs=1e-4)
+    assert new.log_posterior - res.log_posterior == pytest.approx(0.5 * (0.0138 / 0.004) ** 2,
+                                                                   rel=1e-3)
+    assert new.log_posterior - res.log_posterior > PLATEAU_GAIN and new.n_evals > res.n_evals
+    flat = make(False)
+    res = MapResult(stuck, flat.log_posterior(stuck), 10, None)
+    assert off_the_plateau(flat, res, lo, hi) is res
+    inside = np.array([np.log(0.5158), 3.6, 0.62, 0.0])
+    res = MapResult(inside, problem.log_posterior(inside), 10, None)
+    assert off_the_plateau(problem, res, lo, hi) is res
