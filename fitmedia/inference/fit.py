@@ -323,9 +323,9 @@ def map_from_samples(problem, space: ParameterSpace, res, samples: np.ndarray,
     if samples is None or log_prob is None or not len(log_prob):
         return None
     same = np.sign(samples[:, 2]) == np.sign(res.x[2])
-    if not np.any(same):
-        return None
     lp = np.where(same & np.isfinite(log_prob), log_prob, -np.inf)
+    if not np.any(np.isfinite(lp)):
+        return None
     best = samples[int(np.argmax(lp))]
     if not problem.log_posterior(best) > res.log_posterior + MAP_SAMPLE_TOL:
         return None

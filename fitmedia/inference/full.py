@@ -846,7 +846,8 @@ def offset_budget(res: MapResult, loop_x: np.ndarray) -> np.ndarray:
         d[1] = 0.0
     else:
         a, a0 = expit(x[1]), expit(x0[1])
-        d[1] = np.sign(d[1]) * min(abs(d[1]), OFFSET_SHARE * abs(a - a0) / max(a * (1.0 - a), 1e-300))
+        through_slope = OFFSET_SHARE * abs(a - a0) / max(a * (1.0 - a), 1e-300)
+        d[1] = np.sign(d[1]) * min(abs(d[1]), through_slope)
     return np.outer(d, d)
 
 
