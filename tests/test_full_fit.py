@@ -914,13 +914,14 @@ def test_a_restart_delta_the_terms_noise_made_does_not_decide():
     -9 and -368 on the next two seeds, measured when the test was written)."""
     from scipy.stats import t as student_t
 
-    from fitmedia.inference.full import (DELTA_LEVEL, DELTA_SEED_STEP, DELTA_SEEDS, RESTART_DELTA,
-                                         FullFitInfo, adopt_restart, delta_beyond_noise,
+    from fitmedia.inference.full import (DELTA_LOOK_LEVEL, DELTA_SEED_STEP, DELTA_SEEDS,
+                                         DELTA_SEEDS_MORE, RESTART_DELTA, FullFitInfo,
+                                         adopt_restart, delta_beyond_noise, delta_undecided,
                                          restart_delta)
     from fitmedia.trust import RESTART_SD, transport_reasons
 
     v = np.array([-1000.0, -1010.0, -990.0])
-    bound = v.mean() + student_t.ppf(DELTA_LEVEL, 2) * v.std(ddof=1) / np.sqrt(3)
+    bound = v.mean() + student_t.ppf(DELTA_LOOK_LEVEL, 2) * v.std(ddof=1) / np.sqrt(3)
     assert delta_beyond_noise(list(v)) == pytest.approx(bound, rel=1e-12) and bound < -900
     assert delta_beyond_noise([-30.0, 5.0, -12.0]) == 0.0  # the spread covers the mean
     assert delta_beyond_noise([-30.0]) == -30.0
@@ -944,6 +945,9 @@ def test_a_restart_delta_the_terms_noise_made_does_not_decide():
         return d[0] - d[1]
 
     hand = [by_hand(own + DELTA_SEED_STEP * j) for j in range(DELTA_SEEDS + 1)]
+    if delta_undecided(hand):  # the second look (restart_delta_looks_again_... below)
+        hand += [by_hand(own + DELTA_SEED_STEP * j)
+                 for j in range(len(hand), len(hand) + DELTA_SEEDS_MORE)]
     assert abs(hand[0]) > RESTART_DELTA, hand  # the own seed alone would decide
     assert np.std(hand, ddof=1) > abs(np.mean(hand)) / 3, hand  # the noise is the difference
     problem.refresh_models(res.x)
@@ -960,6 +964,69 @@ def test_a_restart_delta_the_terms_noise_made_does_not_decide():
           "term_sd": {"log_kappa_t": 0.01}, "restart_shift_sd": RESTART_SD + 5.0,
           "restart_values": {"kappa_t": 1.0, "g": 0.8}, "restart_delta_log_posterior": got}
     assert len(transport_reasons({"G": {"multiple_scattering": ms}})) == 1
+
+
+def _staged_delta(monkeypatch, per_seed):
+    """restart_delta on a stand-in whose difference on seed own + j DELTA_SEED_STEP is
+    ``per_seed(j)``: (its result, the seeds it traced, the seed left on the model)."""
+    import fitmedia.inference.full as full
+
+    class Term:
+        seed = 11
+
+        def refresh(self):  # pragma: no cover - restart_delta only looks for the attribute
+            pass
+
+    term = Term()
+    traced = []
+
+    def once(problem, res, restart):
+        traced.append(term.seed)
+        return per_seed((term.seed - 11) // full.DELTA_SEED_STEP)
+
+    monkeypatch.setattr(full, "_delta_once", once)
+    monkeypatch.setattr(full, "log_posterior_rebuilt", lambda problem, x: 0.0)
+    problem = SimpleNamespace(obs=[SimpleNamespace(model=term)])
+    point = MapResult(np.zeros(3), None, 0, None)
+    got, values = full.restart_delta(problem, point, point, full.FullFitInfo(converged=True))
+    assert values == [per_seed(j) for j in range(len(values))]
+    return got, traced, term.seed
+
+
+def test_restart_delta_looks_again_where_three_seeds_leave_it_undecided(monkeypatch):
+    """restart_delta's second look (DELTA_SEEDS_MORE more seeds where the first three leave
+    the difference undecided), against cases worked by hand with Student's t (t = 9.92 at 2
+    degrees of freedom and 4.03 at 5, each look at 99.5 %): -20 / -12 / -28 (bound 45.8
+    units wide: undecided) and then -22 / -18 / -24 (6 values, mean -20.7, bound 9.0: beyond
+    -8, decided); -1000 +- 10 decided at the first look; a difference within 8 on the own
+    seed traced once; a noisy one left undecided after six.  And by simulation (rng 7, 4000
+    draws of Gaussian per-seed noise, sd 10): with the true difference at the bound (-8) the
+    two looks together decide in at most DELTA_LEVEL's 1 %, with a binomial allowance of 3
+    sd (0.5 %); with it at -20 (sd 5) they decide in most draws (the reason the second look
+    exists: stop 47's 16 x 12 rounds, three seeds at -18 / -28 / -21 left undecided)."""
+    from fitmedia.inference.full import DELTA_LEVEL, DELTA_SEEDS, DELTA_SEEDS_MORE, RESTART_DELTA
+
+    seq = [-20.0, -12.0, -28.0, -22.0, -18.0, -24.0]
+    got, traced, left = _staged_delta(monkeypatch, lambda j: seq[j])
+    assert len(traced) == 1 + DELTA_SEEDS + DELTA_SEEDS_MORE == 6 and left == 11
+    assert traced == [11 + j * 7919 for j in range(6)]
+    assert got == pytest.approx(np.mean(seq) + 4.0321 * np.std(seq, ddof=1) / np.sqrt(6),
+                                abs=1e-3) and got < -RESTART_DELTA
+    got, traced, _ = _staged_delta(monkeypatch, lambda j: [-1000.0, -1010.0, -990.0][j])
+    assert len(traced) == 3 and got < -900
+    got, traced, _ = _staged_delta(monkeypatch, lambda j: -5.0)
+    assert len(traced) == 1 and got == -5.0
+    noisy = [-40.0, 10.0, -30.0, 5.0, -35.0, 15.0]
+    got, traced, _ = _staged_delta(monkeypatch, lambda j: noisy[j])
+    assert len(traced) == 6 and abs(got) <= RESTART_DELTA
+
+    rng = np.random.default_rng(7)
+    for truth, sd, lo, hi in ((-RESTART_DELTA, 10.0, 0.0, 1 - DELTA_LEVEL + 0.005),
+                              (-20.0, 5.0, 0.8, 1.0)):
+        draws = truth + sd * rng.standard_normal((4000, 6))
+        decided = np.mean([_staged_delta(monkeypatch, lambda j, d=d: float(d[j]))[0]
+                           < -RESTART_DELTA for d in draws])
+        assert lo <= decided <= hi, (truth, decided)
 
 
 def test_a_bulb_fit_that_misfits_is_scanned_from_other_starts(rng):

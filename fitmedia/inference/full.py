@@ -96,10 +96,17 @@ RESTART_DELTA = OTHER_MODE_DELTA
 #: Lowfat Milk 16 ml capture, R, 6 seeds: sd 36 units for two points 0.06 posterior sd apart,
 #: 104 at 1 sd, 171 at 3 sd; docs/inference.md, "The restart's log posterior: its noise").  So
 #: a difference beyond RESTART_DELTA on the fit's own seed is traced again on this many more
-#: seeds, and what counts is the one-sided bound of their mean at ``DELTA_LEVEL`` (Student t
-#: with their spread: ``delta_beyond_noise``), which must itself lie beyond RESTART_DELTA
+#: seeds, and what counts is the one-sided bound of their mean (Student t with their spread:
+#: ``delta_beyond_noise``), which must itself lie beyond RESTART_DELTA
 DELTA_SEEDS = 2
+#: ... and where their mean is beyond RESTART_DELTA but its bound is not (undecided, as 8 of
+#: the 90 channels of the 30 rounds at 16 x 12 px were with 3 seeds and t = 6.96: means -10 to
+#: -27 and +17 units; docs/validation.md, stop 47), on this many more (since 2026-12-06)
+DELTA_SEEDS_MORE = 3
+#: the chance that the term's noise alone decides, over both looks (Bonferroni: each look's
+#: bound at ``DELTA_LOOK_LEVEL``)
 DELTA_LEVEL = 0.99
+DELTA_LOOK_LEVEL = 1.0 - (1.0 - DELTA_LEVEL) / 2
 #: the other seeds are the term's own plus this step times 1, 2, ...
 DELTA_SEED_STEP = 7919
 #: the last refreshes trace the term with this many times its paths (``more_paths``): the
@@ -653,7 +660,8 @@ def restart_delta(problem: ChannelProblem, res: MapResult, restart: MapResult,
     local model rebuilt there (``log_posterior_rebuilt``), where the restart settled (a fixed
     point of the loop, as the MAP is); None where it did not (its end is no fixed point, and
     where it would have settled is not known).  Where that difference on the term's own seed
-    is beyond ``RESTART_DELTA``, it is traced again on ``DELTA_SEEDS`` more seeds and the
+    is beyond ``RESTART_DELTA``, it is traced again on ``DELTA_SEEDS`` more seeds, and where
+    that leaves it undecided (``delta_undecided``) on ``DELTA_SEEDS_MORE`` more; the
     difference returned is what lies beyond their spread (``delta_beyond_noise``): a
     difference the term's noise made does not decide.  Returns that difference and the
     per-seed ones (own seed first).  The local model is left rebuilt at ``res`` on its own
@@ -667,10 +675,13 @@ def restart_delta(problem: ChannelProblem, res: MapResult, restart: MapResult,
         return values[0], values
     seeds = [m.seed for m in models]
     try:
-        for j in range(1, DELTA_SEEDS + 1):
-            for m, s in zip(models, seeds):
-                m.seed = s + DELTA_SEED_STEP * j
-            values.append(_delta_once(problem, res, restart))
+        for more in (DELTA_SEEDS, DELTA_SEEDS_MORE):
+            for j in range(len(values), len(values) + more):
+                for m, s in zip(models, seeds):
+                    m.seed = s + DELTA_SEED_STEP * j
+                values.append(_delta_once(problem, res, restart))
+            if not delta_undecided(values):
+                break
     finally:
         for m, s in zip(models, seeds):
             m.seed = s
@@ -686,17 +697,24 @@ def _delta_once(problem: ChannelProblem, res: MapResult, restart: MapResult) -> 
 
 def delta_beyond_noise(values: list[float]) -> float:
     """The part of the mean of ``values`` (one log-posterior difference per seed of the term)
-    that lies beyond its one-sided ``DELTA_LEVEL`` confidence bound: sign(m) max(|m| - t s /
-    sqrt(n), 0), t Student's with n - 1 degrees of freedom and s the values' spread; the mean
-    itself for one value.  Beyond +-``RESTART_DELTA`` exactly where that bound is."""
+    that lies beyond its one-sided ``DELTA_LOOK_LEVEL`` confidence bound: sign(m) max(|m| -
+    t s / sqrt(n), 0), t Student's with n - 1 degrees of freedom and s the values' spread; the
+    mean itself for one value.  Beyond +-``RESTART_DELTA`` exactly where that bound is."""
     v = np.asarray(values, float)
     m = float(v.mean())
     if v.size < 2:
         return m
     from scipy.stats import t as student_t
 
-    half = float(student_t.ppf(DELTA_LEVEL, v.size - 1)) * float(v.std(ddof=1)) / np.sqrt(v.size)
-    return float(np.sign(m) * max(abs(m) - half, 0.0))
+    t = float(student_t.ppf(DELTA_LOOK_LEVEL, v.size - 1))
+    return float(np.sign(m) * max(abs(m) - t * float(v.std(ddof=1)) / np.sqrt(v.size), 0.0))
+
+
+def delta_undecided(values: list[float]) -> bool:
+    """Whether more seeds could decide: the mean of ``values`` is beyond ``RESTART_DELTA``
+    but the part of it beyond the noise (``delta_beyond_noise``) is not."""
+    return (abs(float(np.mean(values))) > RESTART_DELTA
+            and abs(delta_beyond_noise(values)) <= RESTART_DELTA)
 
 
 def adopt_restart(problem: ChannelProblem, loop: MapResult, loop_info: FullFitInfo,
