@@ -903,7 +903,8 @@ class NoisyStub(SteepStub):
 
 def test_a_restart_delta_the_terms_noise_made_does_not_decide():
     """inference/full.py's restart_delta traces a difference beyond RESTART_DELTA again on
-    DELTA_SEEDS more seeds and keeps only what lies beyond their spread (delta_beyond_noise).
+    DELTA_SEEDS more seeds (DELTA_SEEDS_MORE more where those leave it undecided, since
+    stop 47) and keeps only what lies beyond their spread (delta_beyond_noise).
     Independent checks: each seed's difference against the log posteriors computed by hand on
     that seed; delta_beyond_noise against Student's t bound written out; the term's seed
     restored and its local model rebuilt at the MAP afterwards.  Controls: differences that
