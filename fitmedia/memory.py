@@ -24,6 +24,9 @@ water (docs/testing.md, "Bad-input corpus", gives the runs):
   --no-mcmc`` (Espresso 8 ml at 60 x 45, one channel) 1.7 GB.  ``TRACER_MB`` (1400 MiB) is
   above the largest of those excesses (about 1.7 - 0.3 GB), so the estimate holds for the full
   model too, and overstates a single fit's peak by about 0.4 GiB.
+* the sampler's table of the multiple-scattering term (since 2026-12-07; forward/ms_table.py:
+  ``TermTable``): 3 x ``TERM_TABLE_POINTS`` camera-sized images per image and process that
+  traces, 0.38 kB per pixel (counted, not measured: added to the tracer's share).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from __future__ import annotations
 import os
 
 from .errors import InputError
+from .forward.ms_table import TERM_TABLE_POINTS
 from .spec import Spec
 
 ENV_LIMIT = "FITMEDIA_MAX_MEMORY_GB"
@@ -39,6 +43,7 @@ SYNTH_BASE_MB, SYNTH_PER_PIXEL = 137.0, 6.1e3
 FIT_BASE_MB, FIT_PER_PIXEL_FILE, FIT_PER_PIXEL_MODEL = 250.0, 0.24e3, 1.4e3
 CHAIN_BYTES = 2 * 20000 * 24 * 7 * 8
 TRACER_MB = 1400.0  # per process that traces the multiple-scattering term (see above)
+TERM_TABLE_BYTES_PER_PIXEL = 3 * TERM_TABLE_POINTS * 8  # the term's table (see above)
 
 
 def physical_memory() -> float | None:
@@ -111,8 +116,9 @@ def estimate_peak(spec: Spec, command: str, *, workers: int | None = None,
         files += len(spec.clear_water.paths) * spec.camera.width * spec.camera.height
     # more workers than channels do not run: one process per channel at most
     par = min(workers, len(spec.channels)) if workers else default_workers(len(spec.channels), spec)
+    per_pixel = FIT_PER_PIXEL_MODEL + (TERM_TABLE_BYTES_PER_PIXEL if tracer else 0.0)
     return (FIT_BASE_MB * _MB + FIT_PER_PIXEL_FILE * float(files)
-            + FIT_PER_PIXEL_MODEL * float(sum(sizes)) * par + (CHAIN_BYTES + trace) * par)
+            + per_pixel * float(sum(sizes)) * par + (CHAIN_BYTES + trace) * par)
 
 
 def check_memory(spec: Spec, command: str, **kw) -> None:

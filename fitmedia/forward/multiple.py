@@ -30,6 +30,7 @@ from ..spec import Camera, Spec
 from .base import check_render_args
 from .ms_light import LIGHT_FROM_ORDER, LightTracer
 from .ms_paths import PathTracer
+from .ms_table import TermTable
 from .single import SingleScattering
 
 DEFAULT_BIN = 4
@@ -458,6 +459,24 @@ class FullTransport:
         #: index of a batch of paths the term leaves out (the jackknife of
         #: inference/full.py: term_jackknife), or None for all of them
         self.leave_out: int | None = None
+        #: the sampler's table of the term (``tabulate_term``), or None
+        self._term_table: TermTable | None = None
+
+    def tabulate_term(self, albedo: tuple[float, float]) -> None:
+        """Serve ``render_with_variance``'s term for albedos in ``albedo`` (low, high) from a
+        table of the present local model (``ms_table.TermTable``: the image exact, its excess
+        variance interpolated in the albedo); renders it does not serve are computed as
+        before.  One channel with scattering only; a refresh, ``rebin`` or
+        ``untabulate_term`` drops it.  What it costs in accuracy is for the caller to check
+        (``ChannelProblem.tabulated``)."""
+        loc = None if self._local is None or len(self._local) != 1 else self._local[0]
+        if loc is None or self.ms.photons is None:
+            raise ValueError("tabulate_term: one scattering channel with a bulb's local model "
+                             "only")
+        self._term_table = TermTable(loc, _order_major(loc), self.ms, self.shape, albedo)
+
+    def untabulate_term(self) -> None:
+        self._term_table = None
 
     def rebin(self, bin: int) -> None:
         """Trace the term on sample pixels of ``bin`` x ``bin`` camera pixels from the next
@@ -468,7 +487,7 @@ class FullTransport:
             return
         self.ms = MultipleScattering(old.spec, old._image_index, channels=self.channels, bin=bin,
                                      n_paths=old.n_paths, batches=old.batches, smooth=old.smooth)
-        self._local, self._var0 = None, None
+        self._local, self._var0, self._term_table = None, None, None
 
     def refresh(self, kappa_a, kappa_s, g, brightness=None) -> None:
         """Rebuild the local model at these parameters (arrays of shape (C,)); per scattering
@@ -481,6 +500,7 @@ class FullTransport:
         if self._local is not None and [None if loc is None else loc.get("key")
                                         for loc in self._local] == keys:
             return  # the same point, paths, grid and seed: the same trace (deterministic)
+        self._term_table = None
         local = []
         for k in range(c):
             kt, a = ka[k] + ks[k], (ks[k] / (ka[k] + ks[k]) if ks[k] > 0 else 0.0)
@@ -592,11 +612,23 @@ class FullTransport:
         albedo)."""
         if self.ms.photons is None:
             return self.render(kappa_a, kappa_s, g, brightness), None
-        img, _, exc = self.ms_part(kappa_a, kappa_s, g, brightness, excess=True, variance=False)
-        br = check_render_args(len(self.channels), kappa_a, kappa_s, g, brightness)[3]
+        ka, ks, gg, br = check_render_args(len(self.channels), kappa_a, kappa_s, g, brightness)
+        got = self._from_term_table(ka, ks, gg, br)
+        if got is None:
+            img, _, exc = self.ms_part(ka, ks, gg, br, excess=True, variance=False)
+        else:
+            img, exc = got
         var0 = self._var0 * br ** 2
         return (self.single.render(kappa_a, kappa_s, g, brightness) + img,
                 np.clip(exc - var0, -var0, var0))
+
+    def _from_term_table(self, ka, ks, gg, br) -> tuple[np.ndarray, np.ndarray] | None:
+        """The term's image and excess variance (H, W, 1) from the table where it serves."""
+        table = self._term_table
+        if table is None or self.leave_out is not None or self._local is None:
+            return None
+        got = table.parts(self._local[0], ka[0] + ks[0], ks[0], gg[0], br[0])
+        return None if got is None else (got[0][..., None], got[1][..., None])
 
     def render(self, kappa_a, kappa_s, g, brightness) -> np.ndarray:
         """Image (H, W, C): analytic orders 0 and 1 plus the local multiple-scattering term."""

@@ -67,6 +67,7 @@ from .bulb_cap import (
     cap_table,
     log_cap_attenuation,
 )
+from .chebyshev import chebyshev_points, lagrange_weights
 
 _HALF_PI = 0.5 * np.pi
 HALO_FOOTPRINTS = 8.0  # the bulb's halo: pixels whose ray passes within r + 8 footprints
@@ -545,9 +546,7 @@ class _ImageTable:
         box = np.array([log_kt, atanh_g], float)
         if not (np.all(np.isfinite(box)) and np.all(box[:, 1] > box[:, 0]) and n >= 2):
             raise ValueError(f"tabulate: empty or non-finite box {box.tolist()}, {n} points")
-        j = np.arange(n)
-        self.x = np.cos(np.pi * (j + 0.5) / n)  # in (-1, 1)
-        self.w = (-1.0) ** j * np.sin(np.pi * (j + 0.5) / n)  # barycentric weights
+        self.x, self.w = chebyshev_points(n)  # in (-1, 1); barycentric weights
         self.mid, self.half = box.mean(axis=1), 0.5 * (box[:, 1] - box[:, 0])
         self.shape = model.shape
         self.used = self.outside = 0  # renders from the table, renders outside its box
@@ -568,14 +567,7 @@ class _ImageTable:
             self.direct = np.ascontiguousarray(d[:, self.d_idx])
 
     def _lagrange(self, t: float) -> np.ndarray:
-        d = t - self.x
-        at = np.flatnonzero(d == 0.0)
-        if len(at):
-            out = np.zeros(len(self.x))
-            out[at[0]] = 1.0
-            return out
-        q = self.w / d
-        return q / q.sum()
+        return lagrange_weights(self.x, self.w, t)
 
     def image(self, kt: np.ndarray, ks: np.ndarray, g: np.ndarray, br: np.ndarray
               ) -> np.ndarray | None:

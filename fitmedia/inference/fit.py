@@ -486,10 +486,15 @@ def _sample_channel(problem: ChannelProblem, space: ParameterSpace, res: MapResu
     log.info("%s: sampler's image table %s", channel, "not used" if table.logl_error is None
              else f"used for {table.share or 0:.0%} of this run's renders (log-likelihood "
                   f"error at most {table.logl_error:.1e})")
+    if table.term_logl_error is not None:
+        log.info("%s: the term's table used for %.0f%% of this run's renders (log-likelihood "
+                 "error at most %.1e)", channel, 100 * (table.term_share or 0),
+                 table.term_logl_error)
     out = dict(samples=chain.samples, log_prob=chain.log_prob_samples, n_steps=chain.n_steps,
                tau=chain.tau, acceptance=chain.acceptance_fraction, converged=chain.converged,
                reason=chain.reason, burn=chain.burn, thin=chain.thin, chain=chain.chain,
-               ess=chain.ess, rhat=chain.rhat, table_err=table.logl_error)
+               ess=chain.ess, rhat=chain.rhat, table_err=table.logl_error,
+               term_table_err=table.term_logl_error)
     if two:
         out.update(_sample_other_mode(problem, space, res, alt, chain, log_post, options,
                                       checkpoint, seed, channel, other_mode, identity))

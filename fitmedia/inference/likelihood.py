@@ -14,7 +14,7 @@ reported.  Optionally a Student-t likelihood (nu = 4) for outliers.
 from __future__ import annotations
 
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -34,6 +34,9 @@ TABLE_REACH_SD = (16.0, 8.0, 4.0)
 TABLE_LOGL_TOL = 0.01
 #: the test points' offsets from the MAP, in units of the box's half-width, per axis
 TABLE_TEST_T = (-1.0, -0.5, 0.0, 0.5, 1.0)
+#: ``ChannelProblem._term_box``: the values of logit albedo, evenly across the box, at which
+#: the term's tables are checked (each at 5 points in log kappa_t and atanh g)
+TERM_TEST_POINTS = 9
 
 
 @dataclass
@@ -78,13 +81,25 @@ class TableUse:
 
     logl_error: float | None
     tables: list
+    #: the same for the multiple-scattering term's tables (``ms_table.TermTable``)
+    term_logl_error: float | None = None
+    term_tables: list = field(default_factory=list)
 
     @property
     def share(self) -> float | None:
         """The share of the renders since the tables were built that they served (None:
         no tables, or no renders)."""
-        n = sum(t.used + t.outside for t in self.tables)
-        return sum(t.used for t in self.tables) / n if n else None
+        return _share(self.tables)
+
+    @property
+    def term_share(self) -> float | None:
+        """``share`` for the term's tables."""
+        return _share(self.term_tables)
+
+
+def _share(tables: list) -> float | None:
+    n = sum(t.used + t.outside for t in tables)
+    return sum(t.used for t in tables) / n if n else None
 
 
 class ChannelProblem:
@@ -162,14 +177,20 @@ class ChannelProblem:
         tables served (:class:`TableUse`)."""
         models = [getattr(o.model, "single", o.model) for o in self.obs]
         use = TableUse(None, [])
+        x = np.asarray(x, float)
         try:
-            use.logl_error = self._tabulate(models, np.asarray(x, float), cov)
+            use.logl_error = self._tabulate(models, x, cov)
             use.tables = [m._table for m in models if getattr(m, "_table", None) is not None]
+            use.term_logl_error = self._tabulate_terms(x, cov, TABLE_LOGL_TOL - (
+                use.logl_error or 0.0))
+            use.term_tables = [o.model._term_table for o in self.obs
+                               if getattr(o.model, "_term_table", None) is not None]
             yield use
         finally:
             for m in models:
                 if hasattr(m, "untabulate"):
                     m.untabulate()
+            self._untabulate_terms()
 
     def _tabulate(self, models: list, x: np.ndarray, cov: np.ndarray | None) -> float | None:
         """``tabulated``'s tables, built and checked; the largest difference, or None."""
@@ -206,6 +227,67 @@ class ChannelProblem:
                 m.untabulate()
             return None
         return float(worst)
+
+    def _tabulate_terms(self, x: np.ndarray, cov: np.ndarray | None, tol: float
+                        ) -> float | None:
+        """``tabulated``'s tables of the full-transport models' terms (``tabulate_term``),
+        over the albedos of a box of ``TABLE_REACH_SD`` Laplace sd around ``x`` (the first
+        that passes), kept where the log likelihood they give is within ``tol`` of the one
+        computed without them at every test point (``_term_box``); the largest difference,
+        or None (no tables)."""
+        if not any(getattr(o.model, "_local", None) is not None
+                   and hasattr(o.model, "tabulate_term") for o in self.obs):
+            return None
+        if cov is None or not np.all(np.isfinite(np.diag(cov))) or not tol > 0:
+            return None
+        for reach in TABLE_REACH_SD:
+            worst = self._term_box(x, reach * np.sqrt(np.diag(cov)), tol)
+            if worst is not None:
+                return worst
+        return None
+
+    def _term_box(self, x: np.ndarray, half: np.ndarray, tol: float) -> float | None:
+        """Term tables for the albedos of ``x`` +- ``half`` (every coordinate, within the
+        bounds), kept where they pass ``_tabulate_terms``'s check at the test points:
+        ``TERM_TEST_POINTS`` values of logit albedo across the box, each at the box's centre
+        and corners in (log kappa_t, atanh g), the other coordinates at ``x`` (the steps in
+        log kappa_t and atanh g enter the term exactly; the albedo is interpolated).
+        The largest log-likelihood difference, or None."""
+        lo, hi = np.maximum(x - half, self.space.lower), np.minimum(x + half, self.space.upper)
+        if not hi[1] > lo[1]:
+            return None
+        tests = []
+        for ta in np.linspace(lo[1], hi[1], TERM_TEST_POINTS):
+            for tu, tv in ((0, 0), (-1, -1), (-1, 1), (1, -1), (1, 1)):
+                u = x.copy()
+                u[1] = ta
+                for i, t in ((0, tu), (2, tv)):
+                    u[i] = 0.5 * (lo[i] + hi[i]) + 0.5 * t * (hi[i] - lo[i])
+                tests.append(u)
+        exact = [self.log_likelihood(u) for u in tests]
+        corners = []
+        for e0 in (lo[0], hi[0]):
+            for e1 in (lo[1], hi[1]):
+                u = x.copy()
+                u[0], u[1] = e0, e1
+                corners.append(self._medium(u)[0])
+        for k, o in enumerate(self.obs):
+            albedo = [ks / (ka + ks) if ka + ks > 0 else 0.0
+                      for ka, ks, _, _ in (c[k] for c in corners)]
+            try:
+                o.model.tabulate_term((min(albedo), max(albedo)))
+            except (AttributeError, ValueError):  # no term, no local model, an empty box
+                continue
+        worst = max(abs(self.log_likelihood(u) - e) for u, e in zip(tests, exact))
+        if not worst < tol:  # (NaN too)
+            self._untabulate_terms()
+            return None
+        return float(worst)
+
+    def _untabulate_terms(self) -> None:
+        for o in self.obs:
+            if hasattr(o.model, "untabulate_term"):
+                o.model.untabulate_term()
 
     def refresh_models(self, u: np.ndarray) -> None:
         """Rebuild the local model of every Monte Carlo forward model (``refresh``, as

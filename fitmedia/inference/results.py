@@ -167,6 +167,7 @@ def _sampler_info(f: dict, phys: dict, p: dict) -> dict:
                 ess_bulk=None if f["ess"] is None else dict(zip(names, f["ess"].tolist())),
                 rhat=None if f["rhat"] is None else dict(zip(names, f["rhat"].tolist())),
                 n_samples=len(u), image_table_logl_error=f.get("table_err"),
+                term_table_logl_error=f.get("term_table_err"),
                 g_constrained=bool(g90 < 0.5 * prior_g_interval_width(space)),
                 kappa_s_consistent_with_zero=bool(ks["q05"] < 1e-3 * ks["q95"]))
     if "modes" in f:
