@@ -1,5 +1,6 @@
-"""What the sampler's table of the analytic image (``ChannelProblem.tabulated``) does to the
-cost of one posterior evaluation and of a chain, against the images computed, in one run.
+"""What the sampler's tables (``ChannelProblem.tabulated``: the analytic image's, and for the
+full model since 2026-12-07 the multiple-scattering term's) do to the cost of one posterior
+evaluation and of a chain, against the images computed, in one run.
 
 A capture of the canonical bulb (``--size``, default the canonical 200 x 150), Lowfat Milk 16
 ml in 23 l, made with ``fitmedia synth --model hybrid`` (a bench capture of bench/fit_full.py
@@ -67,6 +68,9 @@ def per_eval(problem, x, cov, pts) -> tuple[float, float, float]:
     with problem.tabulated(x, cov) as use:
         if use.logl_error is None:
             raise SystemExit("the table was refused")
+        if use.term_logl_error is not None:
+            print(f"  the term's table: check's largest log-likelihood difference "
+                  f"{use.term_logl_error:.1e} (the image table's {use.logl_error:.1e})")
         t1, tab = timed()
     return t0, t1, float(np.max(np.abs(tab - exact)))
 
@@ -80,9 +84,9 @@ def chain(problem, x, cov, space, steps: int, table: bool):
         return time.perf_counter() - t, c.chain
 
     if not table:
-        return run() + (None,)
+        return run() + (None, None)
     with problem.tabulated(x, cov) as use:
-        return run() + (use.share,)
+        return run() + (use.share, use.term_share)
 
 
 def compare(label: str, problem, space, x, steps: int, n_evals: int) -> None:
@@ -94,11 +98,12 @@ def compare(label: str, problem, space, x, steps: int, n_evals: int) -> None:
     t0, t1, d = per_eval(problem, x, cov, pts)
     print(f"{label}, one evaluation: {t0:.2f} ms computed, {t1:.2f} ms from the table, "
           f"ratio {t1 / t0:.3f}; largest log-posterior difference {d:.1e}")
-    (c0, ch0, _), (c1, ch1, share) = (chain(problem, x, cov, space, steps, t)
-                                      for t in (False, True))
+    (c0, ch0, _, _), (c1, ch1, share, term) = (chain(problem, x, cov, space, steps, t)
+                                               for t in (False, True))
+    served = "" if term is None else f", the term's table {term:.0%}"
     print(f"{label}, a chain of {steps} steps x 16 walkers: {c0:.1f} s computed, {c1:.1f} s "
-          f"with the table (it served {share:.0%} of the renders), ratio {c1 / c0:.3f}; "
-          f"largest sample difference {np.max(np.abs(ch0 - ch1)):.1e}")
+          f"with the tables (the image table served {share:.0%} of the renders{served}), "
+          f"ratio {c1 / c0:.3f}; largest sample difference {np.max(np.abs(ch0 - ch1)):.1e}")
 
 
 def main() -> None:
