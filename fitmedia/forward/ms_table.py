@@ -18,7 +18,7 @@ docs/inference.md, "The term's table").  Here
 * the mean is exact: the batch means of every order and part are kept (smoothed, as the
   term is), and the image is one product of K x 3 weights with them;
 * the excess is E_0(a) + 2 h_1 E_1(a) + 2 h_2 E_2(a), each E_s(a) = Q(dev_0(a), dev_s(a)) a
-  polynomial in a of degree 2K, tabulated at Chebyshev points of an albedo interval and
+  polynomial in a of degree 2 (K - 1), tabulated at Chebyshev points of an albedo interval and
   interpolated there (barycentric Lagrange weights); outside the interval, for a model
   whose local model was replaced, or with a batch left out (the jackknife), nothing is
   served and the model computes the term as before.
