@@ -6,8 +6,9 @@ capture in at most 15 minutes on 2 CPU cores.  This script makes one full-transp
 scattering term, all orders; its cost is printed but not compared), then fits it twice in
 the same run, ``--model single`` and ``--model full`` (same options, same seed), each as a
 ``fitmedia fit`` subprocess, and prints for each: wall time, CPU time of the subprocess
-tree (user + system), the ratio full / single, the exit code, and kappa_t, kappa_s, g per
-channel against the truth.  On a shared machine the CPU ratio is the steadier figure.
+tree (user + system), the peak resident set of its largest process (since 2026-12-07), the
+ratios full / single, the exit code, and kappa_t, kappa_s, g per channel against the truth.
+On a shared machine the CPU ratio is the steadier figure.
 
 Usage:
   python bench/fit_full.py [--size W H] [--no-mcmc] [--medium NAME] [--ml ML] [--out DIR]
@@ -21,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
@@ -36,16 +36,16 @@ sys.path.insert(0, str(ROOT))
 TARGET_S = 15 * 60
 
 
-def _children_cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
-def run(cmd: list[str]) -> tuple[int, float, float]:
-    """Run ``python -m fitmedia.cli CMD``; (exit code, wall s, CPU s of the process tree)."""
-    t0, c0 = time.perf_counter(), _children_cpu()
-    rc = subprocess.run([sys.executable, "-m", "fitmedia.cli", *cmd], cwd=ROOT).returncode
-    return rc, time.perf_counter() - t0, _children_cpu() - c0
+def run(cmd: list[str]) -> tuple[int, float, float, float]:
+    """Run ``python -m fitmedia.cli CMD``; (exit code, wall s, CPU s of the process tree,
+    peak resident set of its largest process in GiB, from ``wait4``'s rusage: the child's
+    own and that of the worker processes it waited for)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "fitmedia.cli", *cmd], cwd=ROOT)
+    _, status, use = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen.wait
+    return (proc.returncode, time.perf_counter() - t0, use.ru_utime + use.ru_stime,
+            use.ru_maxrss * 1024 / 2**30)  # ru_maxrss: KiB on Linux
 
 
 def scaled_spec(out: Path, size: tuple[int, int] | None) -> Path:
@@ -91,10 +91,11 @@ def main() -> int:
     geo = scaled_spec(a.out, tuple(a.size) if a.size else None)
     cap = a.out / "capture"
     if not (cap / "capture.yaml").exists():
-        rc, wall, cpu = run(["synth", str(geo), "--medium", a.medium, "--ml", str(a.ml),
-                             "--model", "hybrid", "--spp", str(a.spp), "--seed", str(a.seed),
-                             "--out", str(cap)])
-        print(f"synth --model hybrid: exit {rc}, {wall:.0f} s wall, {cpu:.0f} s CPU")
+        rc, wall, cpu, rss = run(["synth", str(geo), "--medium", a.medium, "--ml", str(a.ml),
+                                  "--model", "hybrid", "--spp", str(a.spp), "--seed",
+                                  str(a.seed), "--out", str(cap)])
+        print(f"synth --model hybrid: exit {rc}, {wall:.0f} s wall, {cpu:.0f} s CPU, peak "
+              f"{rss:.2f} GiB")
         if rc:
             return rc
     truth = json.loads((cap / "truth.json").read_text())["undiluted"]
@@ -109,9 +110,10 @@ def main() -> int:
     size = a.size or (200, 150)
     print(f"\n{size[0]} x {size[1]} x 3, {a.medium} {a.ml:g} ml in 23 l, "
           f"{'MAP only' if a.no_mcmc else 'MAP + posterior'}, {os.cpu_count()} CPUs")
-    for model, (rc, wall, cpu, v) in rows.items():
-        print(f"--model {model:6s}: exit {rc}, {wall:7.0f} s wall, {cpu:7.0f} s CPU, "
-              f"model_used {v.get('model_used')}, trust.ok {v.get('trust_ok')}")
+    for model, (rc, wall, cpu, rss, v) in rows.items():
+        print(f"--model {model:6s}: exit {rc}, {wall:7.0f} s wall, {cpu:7.0f} s CPU, peak "
+              f"{rss:.2f} GiB (largest process), model_used {v.get('model_used')}, "
+              f"trust.ok {v.get('trust_ok')}")
         for ch in ("R", "G", "B"):
             if ch in v:
                 parts = []
@@ -121,7 +123,8 @@ def main() -> int:
                     parts.append(f"{k} {err}")
                 print(f"    {ch}: " + ", ".join(parts))
     s, f = rows["single"], rows["full"]
-    print(f"full / single: {f[1] / s[1]:.1f}x wall, {f[2] / s[2]:.1f}x CPU; full fit "
+    print(f"full / single: {f[1] / s[1]:.1f}x wall, {f[2] / s[2]:.1f}x CPU, {f[3] / s[3]:.1f}x "
+          f"peak memory; full fit "
           f"{f[1] / 60:.1f} min wall against the {TARGET_S // 60}-minute target"
           f"{'' if a.size is None else ' (which is for 200 x 150)'}")
     return 0
