@@ -114,36 +114,46 @@ def test_what_the_table_does_not_serve_is_computed(rng):
         ref.tabulate_term((0.9, 0.9))
 
 
-def _problem(rng, orders: int):
-    tab, _ = _pair(rng, orders=orders)
+def _problem(rng, orders: int, concentrations=(1.0,), water_kappa_a: float = 0.0):
+    """A problem of one or more images (a dilution series: each its own model and local
+    model, at ``concentrations`` of a liquid whose undiluted extinction is ``KT``)."""
     space = ParameterSpace()
     truth = space.to_vector(ChannelParams(KT, 0.9, G))
-    clean = tab.render(*_args(0.9, brightness=1.0))[..., 0]
     gain, read = 1e-4, 1e-6
-    data = clean + rng.normal(size=clean.shape) * np.sqrt(gain * clean + read)
-    problem = ChannelProblem([Observation(tab, data, tab.support, 1.0)], space, 1.0,
-                             (gain, read))
+    obs = []
+    for c in concentrations:
+        tab, _ = _pair(rng, orders=orders)
+        kt = c * KT + water_kappa_a
+        clean = tab.render([kt - c * KT * 0.9], [c * KT * 0.9], [G], [1.0])[..., 0]
+        data = clean + rng.normal(size=clean.shape) * np.sqrt(gain * clean + read)
+        obs.append(Observation(tab, data, tab.support, c))
+    problem = ChannelProblem(obs, space, 1.0, (gain, read), water_kappa_a=water_kappa_a)
     problem.adapt(truth)
     return problem, truth
 
 
-def test_problem_term_tables_keep_the_log_posterior(rng):
+@pytest.mark.parametrize("concentrations, water", [((1.0,), 0.0), ((1.0, 0.5), 0.002)])
+def test_problem_term_tables_keep_the_log_posterior(rng, concentrations, water):
     """Within ``tabulated`` the log posterior (both tables) is the computed one to the stated
     tolerance at points across the box, the reported errors add to less than it, the term's
-    table served them, and afterwards no table is left."""
-    problem, x = _problem(rng, orders=12)
-    cov = np.diag([0.01, 0.3, 0.01]) ** 2
+    tables served them, and afterwards no table is left.  Also for two images of a dilution
+    series in water that absorbs (each image's albedo range is its own: c kappa_s over
+    c kappa_t + the water's kappa_a)."""
+    problem, x = _problem(rng, orders=12, concentrations=concentrations,
+                          water_kappa_a=water)
+    cov = np.diag([0.01, 0.02, 0.01]) ** 2  # narrow in the albedo: each image its own range
     pts = [x + rng.uniform(-8, 8, 3) * np.sqrt(np.diag(cov)) for _ in range(20)]
     exact = [problem.log_posterior(p) for p in pts]
     with problem.tabulated(x, cov) as use:
         assert use.term_logl_error is not None
         assert (use.logl_error or 0.0) + use.term_logl_error < likelihood.TABLE_LOGL_TOL
-        table = problem.obs[0].model._term_table
-        n0 = table.used
+        tables = [o.model._term_table for o in problem.obs]
+        assert all(t is not None for t in tables) and len(use.term_tables) == len(tables)
+        n0 = [t.used for t in tables]
         got = [problem.log_posterior(p) for p in pts]
-        assert table.used == n0 + len(pts) and use.term_share > 0
+        assert [t.used for t in tables] == [n + len(pts) for n in n0]
     assert np.max(np.abs(np.subtract(got, exact))) < likelihood.TABLE_LOGL_TOL
-    assert problem.obs[0].model._term_table is None
+    assert all(o.model._term_table is None for o in problem.obs)
 
 
 def test_problem_refuses_term_tables_that_miss_the_tolerance(rng, monkeypatch):
