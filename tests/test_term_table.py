@@ -174,3 +174,27 @@ def test_problem_refuses_term_tables_that_miss_the_tolerance(rng, monkeypatch):
     monkeypatch.undo()
     with problem.tabulated(x, None) as use:
         assert use.term_logl_error is None and problem.obs[0].model._term_table is None
+
+
+def test_a_spots_term_is_not_tabulated(rng):
+    """A spot's term (camera paths alone) has no excess variance to tabulate: ``tabulate_term``
+    refuses it, and ``tabulated`` reports no term table (None, not an error of 0 from a check
+    that compared nothing with nothing)."""
+    spot = {"type": "spot", "position": [40, 10, 30], "direction": [0, 0, 1], "cutoff_deg": 20}
+    spec = make_spec(width=16, height=12, light=spot)
+    ft = FullTransport(spec, None, channels=("G",), bin=2, n_paths=16, batches=8)
+    npix = ft.ms.low_shape[0] * ft.ms.low_shape[1]
+    base = rng.gamma(2.0, 1.0, (8, 4, npix))
+    ft._local = [{"kt": KT, "eta": math.atanh(G), "batches": base, "d_kt": 0.5 * base,
+                  "d_g": -0.2 * base}]
+    assert ft.ms.photons is None and not ft.can_tabulate_term()
+    with pytest.raises(ValueError):
+        ft.tabulate_term((0.5, 1.0))
+    space = ParameterSpace()
+    x = space.to_vector(ChannelParams(KT, 0.9, G))
+    clean = ft.render(*_args(0.9, brightness=1.0))[..., 0]
+    problem = ChannelProblem([Observation(ft, clean + 1e-3, ft.support, 1.0)], space, 1.0,
+                             (1e-4, 1e-6))
+    problem.adapt(x)
+    with problem.tabulated(x, np.diag([0.01, 0.02, 0.01]) ** 2) as use:
+        assert use.term_logl_error is None and use.term_tables == []

@@ -469,11 +469,17 @@ class FullTransport:
         before.  One channel with scattering only; a refresh, ``rebin`` or
         ``untabulate_term`` drops it.  What it costs in accuracy is for the caller to check
         (``ChannelProblem.tabulated``)."""
-        loc = None if self._local is None or len(self._local) != 1 else self._local[0]
-        if loc is None or self.ms.photons is None:
+        if not self.can_tabulate_term():
             raise ValueError("tabulate_term: one scattering channel with a bulb's local model "
                              "only")
+        loc = self._local[0]
         self._term_table = TermTable(loc, _order_major(loc), self.ms, self.shape, albedo)
+
+    def can_tabulate_term(self) -> bool:
+        """Whether ``tabulate_term`` can: one channel, its local model built, with scattering,
+        of a bulb (a spot's term, camera paths alone, has no excess variance to tabulate)."""
+        return (self._local is not None and len(self._local) == 1
+                and self._local[0] is not None and self.ms.photons is not None)
 
     def untabulate_term(self) -> None:
         self._term_table = None

@@ -235,8 +235,7 @@ class ChannelProblem:
         that passes), kept where the log likelihood they give is within ``tol`` of the one
         computed without them at every test point (``_term_box``); the largest difference,
         or None (no tables)."""
-        if not any(getattr(o.model, "_local", None) is not None
-                   and hasattr(o.model, "tabulate_term") for o in self.obs):
+        if not any(getattr(o.model, "can_tabulate_term", lambda: False)() for o in self.obs):
             return None
         if cov is None or not np.all(np.isfinite(np.diag(cov))) or not tol > 0:
             return None
@@ -271,13 +270,17 @@ class ChannelProblem:
                 u = x.copy()
                 u[0], u[1] = e0, e1
                 corners.append(self._medium(u)[0])
+        built = 0
         for k, o in enumerate(self.obs):
             albedo = [ks / (ka + ks) if ka + ks > 0 else 0.0
                       for ka, ks, _, _ in (c[k] for c in corners)]
             try:
                 o.model.tabulate_term((min(albedo), max(albedo)))
-            except (AttributeError, ValueError):  # no term, no local model, an empty box
-                continue
+                built += 1
+            except (AttributeError, ValueError):  # no term, no local model (a spot's term
+                continue  # has none to tabulate), an empty box
+        if not built:
+            return None
         worst = max(abs(self.log_likelihood(u) - e) for u, e in zip(tests, exact))
         if not worst < tol:  # (NaN too)
             self._untabulate_terms()
