@@ -59,7 +59,7 @@ class TermTable:
         self.loc, self.ms, self.shape = loc, ms, shape
         self.kt, self.eta = loc["kt"], loc["eta"]
         k, parts, b, hw = stack.shape
-        self.orders, self.n_batches = k, b
+        self.orders = k
         self.mid, self.half = 0.5 * (lo + hi), 0.5 * (hi - lo)
         self.x, self.w = chebyshev_points(n)
         self.used = self.outside = 0  # renders from the table, renders it did not serve

@@ -97,6 +97,12 @@ class TableUse:
         return _share(self.term_tables)
 
 
+def _can_tabulate_term(model) -> bool:
+    """Whether ``model`` can tabulate its multiple-scattering term now
+    (``FullTransport.can_tabulate_term``; False for a model without one)."""
+    return bool(getattr(model, "can_tabulate_term", lambda: False)())
+
+
 def _share(tables: list) -> float | None:
     n = sum(t.used + t.outside for t in tables)
     return sum(t.used for t in tables) / n if n else None
@@ -235,7 +241,7 @@ class ChannelProblem:
         that passes), kept where the log likelihood they give is within ``tol`` of the one
         computed without them at every test point (``_term_box``); the largest difference,
         or None (no tables)."""
-        if not any(getattr(o.model, "can_tabulate_term", lambda: False)() for o in self.obs):
+        if not any(_can_tabulate_term(o.model) for o in self.obs):
             return None
         if cov is None or not np.all(np.isfinite(np.diag(cov))) or not tol > 0:
             return None
@@ -272,13 +278,15 @@ class ChannelProblem:
                 corners.append(self._medium(u)[0])
         built = 0
         for k, o in enumerate(self.obs):
+            if not _can_tabulate_term(o.model):  # no term, no local model, a spot's term
+                continue
             albedo = [ks / (ka + ks) if ka + ks > 0 else 0.0
                       for ka, ks, _, _ in (c[k] for c in corners)]
             try:
                 o.model.tabulate_term((min(albedo), max(albedo)))
                 built += 1
-            except (AttributeError, ValueError):  # no term, no local model (a spot's term
-                continue  # has none to tabulate), an empty box
+            except ValueError:  # an empty albedo interval
+                continue
         if not built:
             return None
         worst = max(abs(self.log_likelihood(u) - e) for u, e in zip(tests, exact))
