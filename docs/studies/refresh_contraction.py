@@ -46,7 +46,9 @@ cap, mode, factor, delta = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys
 ch = sys.argv[5] if len(sys.argv) > 5 else "G"
 
 
-def refresh_central(self, kappa_a, kappa_s, g, brightness=None):
+def refresh_other(self, kappa_a, kappa_s, g, brightness=None, quad=False):
+    """``FullTransport.refresh`` with central differences, and with ``quad`` the second
+    derivatives and the cross term too (one trace reweighted to 4 or 5 points)."""
     c = len(self.channels)
     ka, ks, gg, _ = MS.check_render_args(c, kappa_a, kappa_s, g, 1.0 if brightness is None else brightness)
     keys = [self._trace_key(ka[k], ks[k], gg[k]) for k in range(c)]
@@ -55,45 +57,31 @@ def refresh_central(self, kappa_a, kappa_s, g, brightness=None):
     for k in range(c):
         kt, a = ka[k] + ks[k], ks[k] / (ka[k] + ks[k])
         eta, s = math.atanh(gg[k]), self.step
-        runs = self.ms.orders_at(kt, gg[k], ((kt * math.exp(s), gg[k]), (kt, math.tanh(eta + s)),
-                                             (kt * math.exp(-s), gg[k]), (kt, math.tanh(eta - s))),
-                                 seed=self.seed, rr_albedo=a)
-        local.append(MS._with_order_major({"kt": kt, "eta": eta, "batches": runs[0],
-                                           "d_kt": (runs[1] - runs[3]) / (2 * s),
-                                           "d_g": (runs[2] - runs[4]) / (2 * s), "key": keys[k]}))
+        pts = ((kt * math.exp(s), gg[k]), (kt, math.tanh(eta + s)),
+               (kt * math.exp(-s), gg[k]), (kt, math.tanh(eta - s)))
+        r = self.ms.orders_at(kt, gg[k], pts + (((kt * math.exp(s), math.tanh(eta + s)),)
+                                                if quad else ()), seed=self.seed, rr_albedo=a)
+        loc = {"kt": kt, "eta": eta, "batches": r[0], "d_kt": (r[1] - r[3]) / (2 * s),
+               "d_g": (r[2] - r[4]) / (2 * s), "key": keys[k]}
+        if quad:
+            loc.update(d_kk=(r[1] - 2 * r[0] + r[3]) / s ** 2, d_gg=(r[2] - 2 * r[0] + r[4]) / s ** 2,
+                       d_kg=(r[5] - r[1] - r[2] + r[0]) / s ** 2)
+        local.append(MS._with_order_major(loc))
     self._local = local
     self._var0 = self.ms_part(ka, ks, gg, np.ones(c), excess=True, variance=False)[2]
 
 
-def refresh_quad(self, kappa_a, kappa_s, g, brightness=None):
-    c = len(self.channels)
-    ka, ks, gg, _ = MS.check_render_args(c, kappa_a, kappa_s, g, 1.0 if brightness is None else brightness)
-    keys = [self._trace_key(ka[k], ks[k], gg[k]) for k in range(c)]
-    self._term_table = None
-    local = []
-    for k in range(c):
-        kt, a = ka[k] + ks[k], ks[k] / (ka[k] + ks[k])
-        eta, s = math.atanh(gg[k]), self.step
-        e = math.exp
-        r = self.ms.orders_at(kt, gg[k], ((kt * e(s), gg[k]), (kt, math.tanh(eta + s)),
-                                          (kt * e(-s), gg[k]), (kt, math.tanh(eta - s)),
-                                          (kt * e(s), math.tanh(eta + s))),
-                              seed=self.seed, rr_albedo=a)
-        local.append(MS._with_order_major({"kt": kt, "eta": eta, "batches": r[0],
-                                           "d_kt": (r[1] - r[3]) / (2 * s),
-                                           "d_g": (r[2] - r[4]) / (2 * s),
-                                           "d_kk": (r[1] - 2 * r[0] + r[3]) / s ** 2,
-                                           "d_gg": (r[2] - 2 * r[0] + r[4]) / s ** 2,
-                                           "d_kg": (r[5] - r[1] - r[2] + r[0]) / s ** 2,
-                                           "key": keys[k]}))
-    self._local = local
-    self._var0 = self.ms_part(ka, ks, gg, np.ones(c), excess=True, variance=False)[2]
+def refresh_central(self, *args):
+    refresh_other(self, *args)
 
 
-_orig_ms_part = MS.FullTransport.ms_part
+def refresh_quad(self, *args):
+    refresh_other(self, *args, quad=True)
 
 
 def ms_part_quad(self, kappa_a, kappa_s, g, brightness, *, excess=False, variance=True):
+    """``FullTransport.ms_part`` with the quadratic local model's six parts (a study's
+    variant: the code's takes three; its excess variance keeps the linear parts' form)."""
     c = len(self.channels)
     ka, ks, gg, br = MS.check_render_args(c, kappa_a, kappa_s, g, brightness)
     img, var, exc = (np.zeros((*self.shape, c)) for _ in range(3))
