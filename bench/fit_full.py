@@ -5,10 +5,10 @@ capture in at most 15 minutes on 2 CPU cores.  This script makes one full-transp
 (``fitmedia synth --model hybrid``: analytic orders 0-1 plus fitmedia's own multiple-
 scattering term, all orders, at 2048 paths per pixel; its cost is printed but not compared),
 then fits it twice in the same run, ``--model single`` and ``--model full`` (same options,
-same seed), each as a ``fitmedia fit`` subprocess, and prints for each: wall time, CPU time of the subprocess
-tree (user + system), the peak resident set of its largest process (since 2026-12-07), the
-ratios full / single, the exit code, and kappa_t, kappa_s, g per channel against the truth.
-On a shared machine the CPU ratio is the steadier figure.
+same seed), each as a ``fitmedia fit`` subprocess, and prints for each: wall time, CPU time
+of the subprocess tree (user + system), the peak resident set of its largest process (since
+2026-12-07), the ratios full / single, the exit code, and kappa_t, kappa_s, g per channel
+against the truth.  On a shared machine the CPU ratio is the steadier figure.
 
 Usage:
   python bench/fit_full.py [--size W H] [--no-mcmc] [--medium NAME] [--ml ML] [--out DIR]

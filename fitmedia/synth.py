@@ -28,8 +28,8 @@ SATURATION = 4.0              # the synthetic camera clips here (written into th
 #: half the misfit guard's model-error allowance (trust.MODEL_ERROR_ALLOWANCE, 0.1), the rest
 #: being the fit's own term error.  Measured (docs/multiple_scattering.md, "Test captures
 #: with this term"): the bench's 200 x 150 Lowfat Milk 16 ml capture at 256 paths per pixel
-#: had a median ratio of only 0.09 in R (the paths are heavy-tailed) but a mean square of 0.21
-#: over the fitted pixels, and its full fit's chi2/pixel was 1.16 against the guard's 1.15
+#: had a median ratio of only 0.09 in R (the paths are heavy-tailed) but a mean square of 0.18
+#: (0.21 against the fit's own variance), and its full fit's chi2/pixel was 1.16 against 1.15
 #: with the values within 0.7 % of the truth; the median (the note's statistic until
 #: 2026-12-07, bound 0.3) did not see it
 HYBRID_TERM_CHI2 = 0.05
