@@ -79,34 +79,11 @@ def refresh_quad(self, *args):
     refresh_other(self, *args, quad=True)
 
 
-def ms_part_quad(self, kappa_a, kappa_s, g, brightness, *, excess=False, variance=True):
-    """``FullTransport.ms_part`` with the quadratic local model's six parts (a study's
-    variant: the code's takes three; its excess variance keeps the linear parts' form)."""
-    c = len(self.channels)
-    ka, ks, gg, br = MS.check_render_args(c, kappa_a, kappa_s, g, brightness)
-    img, var, exc = (np.zeros((*self.shape, c)) for _ in range(3))
-    for k, loc in enumerate(self._local):
-        kt = ka[k] + ks[k]
-        h1, h2 = math.log(kt / loc["kt"]), math.atanh(gg[k]) - loc["eta"]
-        steps = (1.0, h1, h2, h1 * h1 / 2, h2 * h2 / 2, h1 * h2)
-        stack = MS._order_major(loc)
-        pw = (ks[k] / kt) ** np.arange(stack.shape[0])
-        pw[0] = 0.0
-        parts = list((pw @ stack.reshape(stack.shape[0], -1)).reshape(stack.shape[1:]))
-        parts = [self.ms.smoothed(x) for x in parts]
-        per = sum(h * x for h, x in zip(steps, parts))
-        n = per.shape[0]
-        mean = np.clip(per.mean(axis=0), 0.0, None)
-        img[..., k] = (self.ms.upsample(mean) * br[k]).reshape(self.shape)
-        if variance:
-            err = per.std(axis=0, ddof=1) / math.sqrt(n)
-            var[..., k] = ((self.ms.upsample_err(err) * br[k]) ** 2).reshape(self.shape)
-        if excess:
-            dev = [x - x.mean(axis=0) for x in parts]
-            mix = sum(f * h * d for f, h, d in zip((1.0, 2.0, 2.0), steps, dev))
-            q = self.ms.upsampled_products(dev[0], mix)
-            exc[..., k] = (q * br[k] ** 2 / (n * (n - 1))).reshape(self.shape)
-    return (img, var, exc) if excess else (img, var)
+def steps_quad(loc, kt, g):
+    """``FullTransport._steps`` for the quadratic local model's six parts (its excess variance
+    keeps the linear parts' form: ``ms_part`` pairs only the first three)."""
+    h1, h2 = math.log(kt / loc["kt"]), math.atanh(g) - loc["eta"]
+    return (1.0, h1, h2, h1 * h1 / 2, h2 * h2 / 2, h1 * h2)
 
 
 if mode == "central":
@@ -114,7 +91,7 @@ if mode == "central":
 if mode == "quad":
     MS.LOCAL_PARTS = ("batches", "d_kt", "d_g", "d_kk", "d_gg", "d_kg")
     MS.FullTransport.refresh = refresh_quad
-    MS.FullTransport.ms_part = ms_part_quad
+    MS.FullTransport._steps = staticmethod(steps_quad)
 spec = load_spec(cap + "/capture.yaml")
 t = json.load(open(cap + "/truth.json"))["undiluted"]
 opts = FitOptions(model="full", seed=1, mcmc=False)

@@ -558,6 +558,13 @@ class FullTransport:
                 return True
         return False
 
+    @staticmethod
+    def _steps(loc: dict, kt: float, g: float) -> tuple[float, ...]:
+        """The weights of the local model ``loc``'s ``LOCAL_PARTS`` at (kt, g): the steps
+        h = (1, dlog kappa_t, d atanh g) from its refresh point (docs/studies/
+        refresh_contraction.py replaces this with a quadratic model's six)."""
+        return (1.0, math.log(kt / loc["kt"]), math.atanh(g) - loc["eta"])
+
     def ms_part(self, kappa_a, kappa_s, g, brightness, *, excess: bool = False,
                 variance: bool = True) -> tuple:
         """The multiple-scattering image and its Monte Carlo variance, both (H, W, C), from
@@ -578,7 +585,7 @@ class FullTransport:
             if loc is None or ks[k] <= 0:
                 continue
             kt = ka[k] + ks[k]
-            steps = (1.0, math.log(kt / loc["kt"]), math.atanh(gg[k]) - loc["eta"])
+            steps = self._steps(loc, kt, gg[k])
             stack = _order_major(loc)
             pw = (ks[k] / kt) ** np.arange(stack.shape[0])
             pw[0] = 0.0
