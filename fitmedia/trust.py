@@ -136,8 +136,10 @@ def misfit_checks(chans: dict[str, dict], images: Sequence[dict], model: str, *,
 #: (results without the term's jackknife error, ``term_sd``, in their intervals)
 SEED_SHIFT_SD = 1.0
 #: with the jackknife error in the intervals, ``seed_shift_sd`` is the move in units of the sd
-#: the jackknife gives it; beyond this many, the jackknife (and the intervals) understate the
-#: term's error: a 3-sigma event for one coordinate, ~0.5 % for the larger of two
+#: the term's error stated in the intervals gives it (its jackknife and, since 2026-12-07, the
+#: last refreshes' offset budget, each scaled to the loop's paths: inference/full.py
+#: ``seed_shift_units``); beyond this many, the intervals understate the term's error: a
+#: 3-sigma event for one coordinate, ~0.5 % for the larger of two
 SEED_SHIFT_Z = 3.0
 #: a second full-transport fit started beyond the MAP (inference/full.py: restart_shift) that
 #: ends more than this many sd (Laplace plus the term's jackknife) away: two fixed points
@@ -211,8 +213,9 @@ def transport_reasons(chans: dict[str, dict]) -> list[str]:
         elif ms.get("term_sd") is not None and not shift <= SEED_SHIFT_Z:
             _add(reasons, "seed_shift", 
                 f"the multiple-scattering term traced again with other random numbers moved the "
-                f"values of channel {ch} by {shift:.2g} times the sd its stated Monte Carlo error "
-                "gives such a move; the intervals understate that error")
+                f"values of channel {ch} by {shift:.2g} times the sd that the term's error stated in "
+                "the intervals (its Monte Carlo error and the last refreshes' offset budget) gives "
+                "such a move; the intervals understate that error")
     return reasons
 
 

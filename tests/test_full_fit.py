@@ -302,13 +302,22 @@ def test_full_transport_goes_on_from_the_restart_where_it_is_adopted(rng, monkey
     monkeypatch.setattr(full_mod, "use_full_transport",
                         lambda p, *a, **k: setattr(p.obs[0], "model", SteepStub(single)))
     monkeypatch.setattr(full_mod, "ms_share", lambda *a, **k: (np.array([0.5]), np.array([0.01])))
-    monkeypatch.setattr(full_mod, "seed_shift", lambda *a, **k: 0.1)
+    # the seed shift is judged against the last refreshes' jackknife and offset budget
+    # (seed_shift_units, tested on its own), and against the loop's jackknife alone
+    shift, budget, calls = full_mod.SeedShift(np.zeros(3), None, 0.1), np.eye(3) * 7.0, []
+    monkeypatch.setattr(full_mod, "seed_shift", lambda *a, **k: shift)
+    monkeypatch.setattr(full_mod, "offset_budget", lambda r, x: budget)
+    monkeypatch.setattr(full_mod, "seed_shift_units",
+                        lambda *a: calls.append(a) or float(len(calls)))
     monkeypatch.setattr(full_mod, "more_paths",
                         lambda p, sp, r: (r, full_mod.FullFitInfo(converged=True), 2048))
     monkeypatch.setattr(full_mod, "ms_images", lambda *a: None)
     monkeypatch.setattr(full_mod, "adopt_restart", lambda *a: True)
     res, out = _full_transport(problem, space, start, make_spec(width=32, height=24), "G",
                                FitOptions(model="full"), 1)
+    assert [len(c) for c in calls] == [4, 2] and calls[0][0] is shift
+    assert calls[0][3] is budget and out["ms_offset_cov"] is budget
+    assert (out["ms_seed_shift_sd"], out["ms_seed_shift_jackknife_sd"]) == (1.0, 2.0)
     assert out["model_used"] == "full" and out["ms_restart_adopted"] is True
     assert out["ms_restart_shift_sd"] is None
     assert out["full_refreshes"] == len(out["full_moves_sd"]) > 2
@@ -363,6 +372,42 @@ def test_transport_reasons_say_when_fits_end_apart_or_the_term_error_is_understa
     # in the intervals as the offset's budget, no reason
     within = {**last, "final_move": {"kappa_t": 0.044, "g": 0.011}, "final_move_sd": 12.6}
     assert transport_reasons({"G": {"multiple_scattering": within}}) == []
+
+
+def test_the_seed_shift_is_judged_against_the_whole_term_error_in_the_intervals():
+    """full.seed_shift_units against sds worked out by hand: without an offset budget the
+    seed shift is in units of sqrt(2 C_j + 2 (0.1)^2 L_j) (C the loop's jackknife, L the
+    Laplace covariance: the rule until 2026-12-07); with one, each C_j is scaled by (C'_j + O_j)
+    / C'_j, the intervals' term error at the last refreshes' paths (jackknife C' plus offset
+    budget O) over that jackknife.  The bench's B channel (stop 49): a shift 3.12 times the
+    loop's jackknife, with an offset budget 52 times the final jackknife's variance in log
+    kappa_t and 127 times in atanh g, is within ``SEED_SHIFT_Z``; ten times that shift is not.
+    A coordinate whose final jackknife is 0 keeps its scale of 1."""
+    from fitmedia.inference.full import MOVE_TOL_SD, SeedShift, seed_shift_units
+    from fitmedia.trust import SEED_SHIFT_Z
+
+    lap = np.diag([1e-4, 0.25, 4e-4, 1e-6])
+    loop = np.diag([9e-6, 0.0, 1.6e-5, 0.0])  # loop jackknife: sd 0.003 and 0.004
+    final = loop / 8.0
+    unit = np.sqrt(2 * np.diag(loop) + 2 * MOVE_TOL_SD**2 * np.diag(lap))  # by hand
+    move = np.array([3.12 * unit[0], 0.3, -1.0 * unit[2], 0.0])
+    s = SeedShift(move, lap, 7.5)
+    assert seed_shift_units(s, None) == 7.5
+    assert abs(seed_shift_units(s, loop) - 3.12) < 1e-9
+    offset = np.diag([52.0 * final[0, 0], 0.0, 127.0 * final[2, 2], 0.0])
+    both = np.sqrt(2 * np.diag(loop) * np.array([53.0, 1.0, 128.0, 1.0])
+                   + 2 * MOVE_TOL_SD**2 * np.diag(lap))
+    want = max(abs(move[0]) / both[0], abs(move[2]) / both[2])
+    got = seed_shift_units(s, loop, final, offset)
+    assert abs(got - want) < 1e-9 and got < 0.5 < SEED_SHIFT_Z
+    big = SeedShift(10.0 * move, lap, 75.0)
+    assert seed_shift_units(big, loop, final, offset) > SEED_SHIFT_Z
+    # no offset budget: the loop's jackknife alone, as before
+    assert abs(seed_shift_units(s, loop, final, np.zeros((4, 4))) - 3.12) < 1e-9
+    # a final jackknife of 0 in log kappa_t: that coordinate's scale stays 1
+    held = final.copy()
+    held[0, 0] = 0.0
+    assert abs(seed_shift_units(s, loop, held, offset) - 3.12) < 1e-9
 
 
 def _fit(spec: Path, out: Path, *extra: str) -> tuple[int, dict]:

@@ -509,7 +509,7 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     if one was found, refined with the full model too and the better one kept (its MapResult
     ``full_other_mode_map``, its log posterior its measured distance below the MAP's, for
     ``other_g_mode`` and the sampler).  Returns the MAP and ``fit_channel``'s fields."""
-    from .full import (distance_sd, more_paths, ms_images, ms_share, offset_budget, refine_map,
+    from .full import (more_paths, ms_images, ms_share, offset_budget, refine_map,
                        restart_check, restart_in_loop_units, seed_shift, term_jackknife,
                        use_full_transport, use_single_scattering)
 
@@ -535,11 +535,11 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
     check, out["ms_misfit_scan"] = _misfit_scan(problem, space, restart_check(
         problem, space, res, info, single_x, channel), single_x, channel, scan is not None)
     res, info, restart, adopted, term_cov = check[:5]
-    shift = seed_shift(problem, space, res, spec, channel, seed=check_seed, term_cov=term_cov)
+    shift = seed_shift(problem, space, res, spec, channel, seed=check_seed)
     # then the last refreshes with more paths, and the values and their term error from there
     loop, loop_term = res, term_cov
     res, last, paths = more_paths(problem, space, res)
-    term_cov = term_jackknife(problem, res)
+    term_cov, offset = term_jackknife(problem, res), offset_budget(res, loop.x)
     share, share_se = ms_share(problem, res.x, spec, channel, seed=ms_seed)
     both = info.followed_by(last)
     out.update(model_used="full", ms_share=share, ms_share_se=share_se,
@@ -552,15 +552,28 @@ def _full_transport(problem: ChannelProblem, space: ParameterSpace, res, spec: S
                ms_restart_shift_sd=None if adopted else  # no 2nd
                restart_in_loop_units(problem, loop, restart.x, loop_term, res.x),
                ms_restart_values={"kappa_t": float(np.exp(restart.x[0])), "g": float(np.tanh(restart.x[2]))},
-               ms_seed_shift_sd=shift, ms_final_paths=paths, ms_offset_cov=offset_budget(res, loop.x),
-               ms_final_move_sd=distance_sd(problem, res, loop.x, term_cov),
-               ms_final_move={"kappa_t": float(np.exp(res.x[0] - loop.x[0]) - 1.0),
-                              "g": float(np.tanh(res.x[2]) - np.tanh(loop.x[2]))},
-               ms_images=ms_images(problem, res.x))
+               **_last_refreshes_fields(problem, res, loop, loop_term, term_cov, offset, shift),
+               ms_final_paths=paths, ms_images=ms_images(problem, res.x))
     if other_g is not None:  # relative to the final MAP (fit_channel: other_g_mode)
         alt_full.log_posterior = res.log_posterior + other_g["delta_log_posterior"]
         out["full_other_mode_map"] = alt_full
     return res, out
+
+
+def _last_refreshes_fields(problem: ChannelProblem, res, loop, loop_term, term_cov, offset,
+                           shift) -> dict:
+    """``_full_transport``'s fields on the last refreshes, from the loop's end ``loop`` (its
+    jackknife ``loop_term``) to the MAP ``res`` (its jackknife ``term_cov`` and offset budget
+    ``offset``): their move, and the seed shift (``shift``, measured at the loop's end) judged
+    against the intervals' whole term error and against the loop's jackknife alone."""
+    from .full import distance_sd, seed_shift_units
+
+    return {"ms_seed_shift_sd": seed_shift_units(shift, loop_term, term_cov, offset),
+            "ms_seed_shift_jackknife_sd": seed_shift_units(shift, loop_term),
+            "ms_offset_cov": offset,
+            "ms_final_move_sd": distance_sd(problem, res, loop.x, term_cov),
+            "ms_final_move": {"kappa_t": float(np.exp(res.x[0] - loop.x[0]) - 1.0),
+                              "g": float(np.tanh(res.x[2]) - np.tanh(loop.x[2]))}}
 
 
 def _misfit_scan(problem: ChannelProblem, space: ParameterSpace, check, single_x: np.ndarray,
