@@ -118,7 +118,14 @@ DELTA_SEED_STEP = 7919
 #: posterior sd; 16 made the bench's full fit 18.5 min against issue 15's 15, its last
 #: refreshes 78 % of a channel's full-transport time (docs/inference.md, "Speed")
 FINAL_PATHS_FACTOR = 8
-FINAL_REFRESHES = 3
+#: ... with at most this many refreshes.  4 since 2026-12-07 (3 before): each last refresh
+#: at 100 x 75 moves the polish by about a posterior sd of the term's realisation, so three
+#: may all stay above 1 term unit at the fixed point.  Regular Milk 60 ml at 100 x 75 (G,
+#: seed-62 capture) moved 1.19, 1.88, 1.22 term units and exited 1 ("did not settle") at
+#: kappa_t -0.3 %; its fourth moved 0.68 and it exits 0 at kappa_t +0.4 %, g +0.002.  On the
+#: 30 rounds at 16 x 12 px the fourth changed 5 of 90 channels, none in a fit that exits 0
+#: (docs/inference.md, "A fourth last refresh")
+FINAL_REFRESHES = 4
 #: ... on a grid of about this many sample pixels (``final_bin``; the loop's ``trace_bin``
 #: grid is half as fine each way): with the term fixed at the truth (4096 paths per sample
 #: pixel) the upsampling from the loop's grid left kappa_t -2.4 % and g -0.002 in R of a Lowfat
