@@ -724,7 +724,8 @@ def test_more_paths_multiplies_the_paths_and_traces_a_coarse_grid_finer(monkeypa
     FINAL_TRACE_WIDTH x FINAL_TRACE_HEIGHT sample pixels is rebinned to it (the loop's bin 4
     at the canonical 200 x 150 to 2, its bin 2 at 100 x 75 to 1: the upsampling's bias,
     measured in docs/inference.md), one already that fine keeps its grid; the refreshes then
-    start from the MAP given (refine_map, stubbed here: the refreshes are tested above)."""
+    start from the MAP given, with at most FINAL_REFRESHES refreshes (refine_map, stubbed
+    here: the refreshes are tested above)."""
     from fitmedia.inference import full
 
     class Model:
@@ -750,6 +751,7 @@ def test_more_paths_multiplies_the_paths_and_traces_a_coarse_grid_finer(monkeypa
     start = MapResult(np.zeros(3), 0.0, 1, None)
     _, _, paths = full.more_paths(problem, None, start)
     assert paths == FINAL_PATHS_FACTOR * 256 and seen["start"] is start
+    assert seen["max_refresh"] == full.FINAL_REFRESHES == 4
     assert [m.ms.bin for m in models] == [2, 1, 1]
     assert all(m.ms.n_paths == FINAL_PATHS_FACTOR * 256 for m in models)
 
