@@ -123,7 +123,8 @@ FINAL_PATHS_FACTOR = 8
 #: may all stay above 1 term unit at the fixed point.  Regular Milk 60 ml at 100 x 75 (G,
 #: seed-62 capture) moved 1.19, 1.88, 1.22 term units and exited 1 ("did not settle") at
 #: kappa_t -0.3 %; its fourth moved 0.68 and it exits 0 at kappa_t +0.4 %, g +0.002.  On the
-#: 30 rounds at 16 x 12 px the fourth changed 5 of 90 channels, none in a fit that exits 0
+#: 30 rounds at 16 x 12 px the change (the fourth, and the second now extrapolated where two
+#: moves line up) moved 5 of 90 channels, none in a fit that exits 0
 #: (docs/inference.md, "A fourth last refresh")
 FINAL_REFRESHES = 4
 #: ... on a grid of about this many sample pixels (``final_bin``; the loop's ``trace_bin``
