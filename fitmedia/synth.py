@@ -46,6 +46,10 @@ class CameraNoise:
         shot = rng.poisson(mean / self.gain) * self.gain if self.gain > 0 else mean
         return shot + rng.normal(0.0, np.sqrt(self.read_var), size=image.shape)
 
+    def is_zero(self) -> bool:
+        """Whether this adds no noise at all (a noise-free capture)."""
+        return self.gain == 0 and self.read_var == 0
+
 
 def _render(spec: Spec, index: int | None, medium: Medium, brightness: np.ndarray, model: str,
             spp: int, seed: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -123,6 +127,9 @@ def synthesize(spec: Spec, out_dir: str | Path, medium: Medium, ml: list[float],
     for v in ml:
         if not (v > 0 and np.isfinite(v)):
             raise InputError(f"--ml: got {v}: must be a positive volume in ml")
+    for flag, v in (("--gain", noise.gain), ("--read-var", noise.read_var)):
+        if not (v >= 0 and np.isfinite(v)):  # until 2026-12-07 -1 wrote NaN or an unfittable spec
+            raise InputError(f"{flag}: got {v}: must be a finite variance >= 0 (0: no such noise)")
     from .memory import check_memory
 
     check_memory(spec, "synth", tracer=model == "hybrid")
@@ -163,7 +170,9 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
         clean, err = _render(spec, None, tank_medium, bright, model, spp, seed + 1000 + k)
         img = noise.apply(clean, rng)
         extra = {}
-        if err is not None:  # hybrid: how large the term's own error is, in camera noise
+        # hybrid: how large the term's own error is, in camera noise (none to compare with in a
+        # noise-free capture: until 2026-12-07 its ratio was inf and its note said so)
+        if err is not None and not noise.is_zero():
             extra["ms_term_error_to_camera_noise"] = ratio = term_noise(clean, err, noise)
             notes += _term_noise_note(k, ratio, max(spp, 16))
         n_sat = int(np.sum(np.any(img >= SATURATION, axis=-1)))
@@ -175,6 +184,10 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
                         "saturation": SATURATION})
         truth_imgs.append({"path": name, "ml": v, "tank_ml": tank_ml, "concentration": c,
                            "tank": tank_medium.as_dict(), **extra})
+    if noise.is_zero():
+        notes.append("the images are noise-free (gain and read_var 0): capture.yaml's noise "
+                     "block has zero variance, which fit refuses; give it the variance to fit "
+                     "with (docs/spec.md, noise)")
     clear = _render(spec, None, _with_water(medium.scaled(0.0), water), bright, "single", spp,
                     seed)[0]
     write_float_tiff(out / "images/clear_water.tiff",

@@ -104,6 +104,10 @@ def test_fit_rejects_a_calibration_with_a_saturated_bulb(capture, tmp_path, caps
     (["--medium", "Espresso", "--ml", "8", "--tank-ml", "0"], ["--tank-ml"]),
     (["--kappa-a", "0.1", "--kappa-s", "1", "--ml", "8"], ["--kappa-a"]),
     (["--kappa-a", "0.1", "--kappa-s", "-1", "--g", "0.5", "--ml", "8"], ["kappa_s"]),
+    # until 2026-12-07 a negative read variance wrote NaN pixels (a traceback) and a negative
+    # gain a capture that fit refuses
+    (["--medium", "Espresso", "--ml", "8", "--read-var=-1e-9"], ["--read-var", ">= 0"]),
+    (["--medium", "Espresso", "--ml", "8", "--gain=-2e-5"], ["--gain", ">= 0"]),
 ])
 def test_synth_rejects_bad_arguments(tmp_path, capsys, args, words):
     code, _, err = run(["synth", ROOT / "capture_specs" / "bulb.yaml", "--out", tmp_path / "o"]

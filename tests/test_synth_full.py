@@ -133,3 +133,40 @@ def test_synth_keeps_the_specs_channels(tmp_path):
     assert img.shape[-1] == 3
     truth = json.loads((tmp_path / "g" / "truth.json").read_text())
     assert set(truth["undiluted"]["kappa_s"]) == {"R", "G", "B"}
+
+
+def test_a_noise_free_hybrid_capture_says_so_and_states_no_term_to_noise_ratio(tmp_path):
+    """``synth --gain 0 --read-var 0`` (a noise-free twin, as the studies make): there is no
+    camera noise to measure the term's error against, so truth.json carries no
+    ``ms_term_error_to_camera_noise`` (until 2026-12-07 its ratio was inf, and its note said
+    the term added inf to chi2/pixel), and one note says the images are noise-free and that
+    fit refuses their zero-variance noise block, which fit does (exit 2, naming ``noise``).
+    Independent check: the images equal the noisy capture's clean image, i.e. the same synth
+    with noise, minus that noise, is within the noise's own size of them."""
+    import json
+    import warnings
+
+    import yaml
+
+    from conftest import geometry_dict
+    from fitmedia.cli import main
+    from fitmedia.images.io import read_image
+
+    geom = tmp_path / "geom.yaml"
+    geom.write_text(yaml.safe_dump(geometry_dict(16, 12)))
+    base = ["synth", str(geom), "--medium", "Regular Milk", "--ml", "8", "--seed", "4",
+            "--model", "hybrid", "--spp", "64"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no 0/0 left in the ratio
+        assert main(base + ["--gain", "0", "--read-var", "0", "--out", str(tmp_path / "nf")]) == 0
+    truth = json.loads((tmp_path / "nf" / "truth.json").read_text())
+    assert "ms_term_error_to_camera_noise" not in truth["images"][0]
+    assert len(truth["notes"]) == 1 and "noise-free" in truth["notes"][0], truth["notes"]
+    assert main(base + ["--out", str(tmp_path / "noisy")]) == 0
+    clean = read_image(tmp_path / "nf" / "images" / "medium_00_8ml.tiff")[0]  # load_spec refuses it
+    noisy = read_image(tmp_path / "noisy" / "images" / "medium_00_8ml.tiff")[0]
+    sd = np.sqrt(2e-5 * clean + 1e-9)  # synth's default camera noise
+    z = (noisy - clean) / sd
+    assert abs(z.mean()) < 0.2 and 0.8 < z.std() < 1.2, (z.mean(), z.std())
+    assert main(["fit", str(tmp_path / "nf" / "capture.yaml"), "--no-mcmc", "--model", "single",
+                 "--out", str(tmp_path / "fit")]) == 2
