@@ -35,6 +35,12 @@ SATURATION = 4.0              # the synthetic camera clips here (written into th
 HYBRID_TERM_CHI2 = 0.05
 
 
+#: truth.json's note for a capture made with ``--gain 0 --read-var 0`` (since 2026-12-07)
+NOISE_FREE_NOTE = ("the images are noise-free (gain and read_var 0): capture.yaml's noise block "
+                   "has zero variance, which fit refuses; give it the variance to fit with "
+                   "(docs/spec.md, noise)")
+
+
 @dataclass(frozen=True)
 class CameraNoise:
     gain: float = DEFAULT_GAIN
@@ -89,6 +95,22 @@ def term_noise(clean: np.ndarray, err: np.ndarray, noise: CameraNoise) -> dict:
         out[ch] = {"median": float(np.median(r)), "p90": float(np.percentile(r, 90)),
                    "mean_square": float(np.mean(r ** 2))}
     return out
+
+
+def _image_notes(k: int, img: np.ndarray, clean: np.ndarray, err: np.ndarray | None,
+                 noise: CameraNoise, spp: int, notes: list[str]) -> dict:
+    """truth.json's extra fields for image ``k`` (``img``, rendered ``clean`` with the term's
+    error ``err``); appends its notes (term error, saturated pixels) to ``notes``."""
+    extra = {}
+    # hybrid: how large the term's own error is, in camera noise (none to compare with in a
+    # noise-free capture: until 2026-12-07 its ratio was inf and its note said so)
+    if err is not None and not noise.is_zero():
+        extra["ms_term_error_to_camera_noise"] = ratio = term_noise(clean, err, noise)
+        notes += _term_noise_note(k, ratio, max(spp, 16))
+    n_sat = int(np.sum(np.any(img >= SATURATION, axis=-1)))
+    if n_sat:
+        notes.append(f"image {k}: {n_sat} pixels saturated")
+    return extra
 
 
 def _term_noise_note(k: int, ratio: dict, paths: int) -> list[str]:
@@ -169,25 +191,14 @@ def _write_capture(spec: Spec, out: Path, medium: Medium, ml: list[float], *, ta
         tank_medium = _with_water(medium.scaled(c), water)
         clean, err = _render(spec, None, tank_medium, bright, model, spp, seed + 1000 + k)
         img = noise.apply(clean, rng)
-        extra = {}
-        # hybrid: how large the term's own error is, in camera noise (none to compare with in a
-        # noise-free capture: until 2026-12-07 its ratio was inf and its note said so)
-        if err is not None and not noise.is_zero():
-            extra["ms_term_error_to_camera_noise"] = ratio = term_noise(clean, err, noise)
-            notes += _term_noise_note(k, ratio, max(spp, 16))
-        n_sat = int(np.sum(np.any(img >= SATURATION, axis=-1)))
-        if n_sat:
-            notes.append(f"image {k}: {n_sat} pixels saturated")
+        extra = _image_notes(k, img, clean, err, noise, spp, notes)
         name = f"images/medium_{k:02d}_{v:g}ml.tiff"
         write_float_tiff(out / name, np.minimum(img, SATURATION).astype(np.float32))
         entries.append({"path": name, "exposure_s": 1.0, "concentration": float(c),
                         "saturation": SATURATION})
         truth_imgs.append({"path": name, "ml": v, "tank_ml": tank_ml, "concentration": c,
                            "tank": tank_medium.as_dict(), **extra})
-    if noise.is_zero():
-        notes.append("the images are noise-free (gain and read_var 0): capture.yaml's noise "
-                     "block has zero variance, which fit refuses; give it the variance to fit "
-                     "with (docs/spec.md, noise)")
+    notes += [NOISE_FREE_NOTE] if noise.is_zero() else []
     clear = _render(spec, None, _with_water(medium.scaled(0.0), water), bright, "single", spp,
                     seed)[0]
     write_float_tiff(out / "images/clear_water.tiff",
