@@ -135,7 +135,7 @@ def test_synth_keeps_the_specs_channels(tmp_path):
     assert set(truth["undiluted"]["kappa_s"]) == {"R", "G", "B"}
 
 
-def test_a_noise_free_hybrid_capture_says_so_and_states_no_term_to_noise_ratio(tmp_path):
+def test_a_noise_free_hybrid_capture_says_so_and_states_no_term_to_noise_ratio(tmp_path, capsys):
     """``synth --gain 0 --read-var 0`` (a noise-free twin, as the studies make): there is no
     camera noise to measure the term's error against, so truth.json carries no
     ``ms_term_error_to_camera_noise`` (until 2026-12-07 its ratio was inf, and its note said
@@ -168,5 +168,8 @@ def test_a_noise_free_hybrid_capture_says_so_and_states_no_term_to_noise_ratio(t
     sd = np.sqrt(2e-5 * clean + 1e-9)  # synth's default camera noise
     z = (noisy - clean) / sd
     assert abs(z.mean()) < 0.2 and 0.8 < z.std() < 1.2, (z.mean(), z.std())
+    capsys.readouterr()
     assert main(["fit", str(tmp_path / "nf" / "capture.yaml"), "--no-mcmc", "--model", "single",
                  "--out", str(tmp_path / "fit")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "noise" in err and "variance" in err, err
