@@ -79,25 +79,28 @@ def realisation(twin_spec: Path, camera: CameraNoise, out: Path, ch: str, i: int
     return out / "capture.yaml"
 
 
+def true_values(truth: dict, ch: str) -> dict[str, float]:
+    """The true kappa_t, kappa_s, g and kappa_s' = kappa_s (1 - g) in channel ``ch``."""
+    out = {q: truth[q][ch] for q in ("kappa_t", "kappa_s", "g")}
+    out["kappa_s_reduced"] = out["kappa_s"] * (1.0 - out["g"])
+    return out
+
+
 def errors(res: dict, truth: dict, ch: str, key: str) -> dict[str, float]:
     """log(value / truth) of kappa_t, kappa_s and kappa_s' (g: value - truth) at ``key``."""
     p = res["parameters"]
-    ksr = truth["kappa_s"][ch] * (1.0 - truth["g"][ch])
-    out = {q: float(np.log(p[q][ch][key] / truth[q][ch])) for q in ("kappa_t", "kappa_s")}
-    out["kappa_s_reduced"] = float(np.log(p["kappa_s_reduced"][ch][key] / ksr))
-    out["g"] = p["g"][ch][key] - truth["g"][ch]
-    return out
+    return {q: float(p[q][ch][key] - t if q == "g" else np.log(p[q][ch][key] / t))
+            for q, t in true_values(truth, ch).items()}
 
 
 def summary(results: list[dict], truth: dict, ch: str) -> None:
     """Mean error (median and MAP), sd of z and 90 % coverage over the realisations."""
-    ksr = truth["kappa_s"][ch] * (1.0 - truth["g"][ch])
     print(f"{len(results)} realisations, channel {ch}; exit 0 in "
           f"{sum(r['trust']['ok'] for r in results)}")
-    for q in ("kappa_t", "kappa_s", "g", "kappa_s_reduced"):
-        t = ksr if q == "kappa_s_reduced" else truth[q][ch]
-        e = np.array([errors(r, truth, ch, "median")[q] for r in results])
-        m = np.array([errors(r, truth, ch, "map")[q] for r in results])
+    med = [errors(r, truth, ch, "median") for r in results]
+    map_ = [errors(r, truth, ch, "map") for r in results]
+    for q, t in true_values(truth, ch).items():
+        e, m = np.array([d[q] for d in med]), np.array([d[q] for d in map_])
         x = [r["parameters"][q][ch] for r in results]
         z = np.array([(p["median"] - t) / p["std"] for p in x])
         cover = np.mean([p["q05"] <= t <= p["q95"] for p in x])
