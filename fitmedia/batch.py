@@ -201,6 +201,7 @@ def _run_round(task: RoundTask) -> dict:
     from .validate import round_trip
 
     out = Path(task.out)
+    out.mkdir(parents=True, exist_ok=True)  # capture/ and fit/ then stage inside it, not beside OUT
     record: dict = {"index": task.index, "dir": out.name, **task.identity()}
     t0 = time.perf_counter()
     try:
@@ -471,6 +472,7 @@ def _run_fit(task: FitTask) -> dict:
     """Fit one capture; an InputError is returned as a failed record.  Dask task."""
     from .pipeline import fit
 
+    Path(task.out).parent.mkdir(parents=True, exist_ok=True)  # the fit stages inside OUT
     try:
         results = fit(task.spec, task.out, task.options, report=task.report)
     except InputError as exc:

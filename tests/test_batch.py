@@ -107,6 +107,49 @@ def test_rerun_skips_finished_rounds(serial_run, geometry, tmp_path, monkeypatch
     assert [r["status"] for r in again.rounds] == ["done earlier", "done earlier"]
 
 
+def _staging_only(seen: list, above: Path, out: Path):
+    """A stand-in for a task's writer: stages ``target`` (util.staged_output_dir), records the
+    temporary folder's parent and every path under ``above`` outside ``out``, and stops."""
+    from fitmedia.util import staged_output_dir
+
+    def write(target: Path):
+        with staged_output_dir(target) as stage:
+            seen.append((stage.parent, sorted(str(p.relative_to(above)) for p in above.rglob("*")
+                                              if not p.is_relative_to(out))))
+            raise InputError("stopped after staging")
+    return write
+
+
+def test_tasks_stage_their_folders_inside_the_output_folder(geometry, capture, tmp_path,
+                                                            monkeypatch):
+    """A round's capture/ and fit-many's capture folders are written through
+    util.staged_output_dir, whose hidden temporary folder lies in its target's nearest
+    existing folder.  Until 2026-12-07 a fresh OUT's first tasks staged in the folder above
+    OUT (seen in a 100 x 75 px validate run), where a killed task's litter outlived the rerun;
+    now the task's folder is made first, and nothing is ever written beside OUT.  Checked on
+    the staging itself (no fit): the temporary folder's parent, and what lies outside OUT
+    while it exists."""
+    seen: list = []
+    out = tmp_path / "new" / "val"
+    write = _staging_only(seen, tmp_path, out)
+    monkeypatch.setattr("fitmedia.validate.round_trip",
+                        lambda geometry, medium, ml, round_dir, **kw: write(round_dir / "capture"))
+    res = validate(["Espresso"], 2, out, ml=[8.0], geometry=geometry, seed=1,
+                   scheduler="serial", options=OPTIONS)
+    assert [r["status"] for r in res.rounds] == ["failed", "failed"]
+    assert seen == [(out / f"round_{i:04d}", ["new"]) for i in range(2)]
+    seen.clear()
+    above = tmp_path / "m"
+    above.mkdir()
+    many = above / "new" / "many"
+    write = _staging_only(seen, above, many)
+    monkeypatch.setattr("fitmedia.pipeline.fit", lambda spec, target, *a, **kw: write(Path(target)))
+    recs = fit_many([capture], many, scheduler="serial", options=MAP_ONLY, report=False)
+    assert [r["status"] for r in recs] == ["failed"]
+    assert seen == [(many, ["new"])]
+    assert not [p for p in tmp_path.rglob(".*")], "a temporary folder was left"
+
+
 def test_rerun_with_other_settings_in_the_same_folder_is_refused(serial_run, geometry):
     out, _ = serial_run
     with pytest.raises(InputError, match="--out: .*round_0000.*seed"):
