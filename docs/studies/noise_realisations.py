@@ -40,26 +40,25 @@ from fitmedia.spec import load_spec
 from fitmedia.synth import SATURATION, CameraNoise, synthesize
 
 
-def twin(round_dir: Path, geometry: Path, out: Path) -> Path:
-    """The round's noise-free twin (made once) with a constant-variance noise block."""
+def twin(rj: dict, camera: CameraNoise, geometry: Path, out: Path) -> Path:
+    """The noise-free twin (made once) of the round ``rj`` (its round.json) whose camera noise
+    is ``camera``, with a constant-variance noise block."""
     spec_path = out / "twin" / "capture.yaml"
     if not spec_path.exists():
-        rj = json.loads((round_dir / "round.json").read_text())
         synthesize(load_spec(geometry, require_images=False), out / "twin",
                    medium_by_name(rj["medium"]), list(rj["ml"]), seed=rj["seed"],
                    model=rj["synth_model"], spp=rj["synth_spp"], medium_name=rj["medium"],
                    noise=CameraNoise(gain=0.0, read_var=0.0))
         raw = yaml.safe_load(spec_path.read_text())
-        camera = yaml.safe_load((round_dir / "capture" / "capture.yaml").read_text())["noise"]
         img = tifffile.imread(out / "twin" / raw["images"][0]["path"])
-        raw["noise"] = {"gain": 0.0, "read_var": float(camera["gain"] * np.median(img))}
+        raw["noise"] = {"gain": 0.0, "read_var": float(camera.gain * np.median(img))}
         spec_path.write_text(yaml.safe_dump(raw))
     return spec_path
 
 
-def options(round_dir: Path, seed: int, mcmc: bool) -> FitOptions:
-    """The round's fit options (round.json) with ``seed`` and ``mcmc``."""
-    o = json.loads((round_dir / "round.json").read_text())["options"]
+def options(rj: dict, seed: int, mcmc: bool) -> FitOptions:
+    """The fit options of the round ``rj`` (its round.json) with ``seed`` and ``mcmc``."""
+    o = rj["options"]
     return FitOptions(model=o["model"], seed=seed, mcmc=mcmc, robust=o["robust"],
                       global_evals=o["global_evals"], progress=False, workers=1)
 
@@ -116,20 +115,21 @@ def main() -> None:
     ch, n = sys.argv[4], int(sys.argv[5])
     rj = json.loads((round_dir / "round.json").read_text())
     truth = json.loads((round_dir / "capture" / "truth.json").read_text())["undiluted"]
-    spec_path = twin(round_dir, geometry, out)
-    if not (out / "twin_fit" / "results.json").exists():
-        fit(spec_path, out / "twin_fit", options(round_dir, rj["seed"], False), report=False)
-    res = json.loads((out / "twin_fit" / "results.json").read_text())
-    print("noise-free twin, MAP minus truth: " + ", ".join(
-        f"{c} kappa_t {100 * errors(res, truth, c, 'map')['kappa_t']:+.2f} % g "
-        f"{errors(res, truth, c, 'map')['g']:+.4f}" for c in res["channels"]), flush=True)
     camera = CameraNoise(**yaml.safe_load((round_dir / "capture" / "capture.yaml").read_text())["noise"])
+    spec_path = twin(rj, camera, geometry, out)
+    if not (out / "twin_fit" / "results.json").exists():
+        fit(spec_path, out / "twin_fit", options(rj, rj["seed"], False), report=False)
+    res = json.loads((out / "twin_fit" / "results.json").read_text())
+    twin_errors = {c: errors(res, truth, c, "map") for c in res["channels"]}
+    print("noise-free twin, MAP minus truth: " + ", ".join(
+        f"{c} kappa_t {100 * e['kappa_t']:+.2f} % g {e['g']:+.4f}" for c, e in twin_errors.items()),
+        flush=True)
     results = []
     for i in range(n):
         d = out / f"r{i:03d}"
         if not (d / "fit" / "results.json").exists():
             fit(realisation(spec_path, camera, d / "cap", ch, i), d / "fit",
-                options(round_dir, 1000 + i, True), report=False)
+                options(rj, 1000 + i, True), report=False)
         results.append(json.loads((d / "fit" / "results.json").read_text()))
         print(f"realisation {i}: kappa_t {100 * errors(results[-1], truth, ch, 'median')['kappa_t']:+.2f} %",
               flush=True)
