@@ -13,7 +13,6 @@ import copy
 from pathlib import Path
 
 import numpy as np
-import pytest
 import tifffile
 import yaml
 

@@ -23,7 +23,7 @@ def analytic_pass_probability(n: int, bias: float, spread: float) -> float:
         return norm.sf(z, bias, spread) + norm.cdf(-z, bias, spread)
 
     p_far, p_out = beyond(z_lim), beyond(z99)
-    p_mid, p_in = p_out - p_far, 1.0 - p_out
+    p_mid = p_out - p_far
     k_max = int(binom.ppf(0.99, n, 0.01))
     return float(sum(binom.pmf(k, n, p_mid / (1 - p_far)) * (1 - p_far) ** n
                      for k in range(k_max + 1)))

@@ -20,7 +20,6 @@ from conftest import make_spec
 from fitmedia.forward.multiple import FullTransport
 from fitmedia.forward.single import SingleScattering
 from fitmedia.inference.likelihood import ChannelProblem, Observation
-from fitmedia.inference.optimize import find_map
 from fitmedia.inference.params import ChannelParams, ParameterSpace
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from fitmedia.forward import ms_paths
-from fitmedia.forward.multiple import FullTransport, MultipleScattering
+from fitmedia.forward.multiple import FullTransport
 from fitmedia.inference import fit as F
 from fitmedia.inference.likelihood import ChannelProblem, Observation
 from fitmedia.inference.optimize import find_map

@@ -12,7 +12,6 @@ clear water, noise in the spec) made once with :func:`make_base`.
 
 from __future__ import annotations
 
-import copy
 import shutil
 import subprocess
 import sys
