@@ -20,7 +20,7 @@ For one round of ``fitmedia validate`` (its folder ROUND holds round.json and ca
 A capture that was fitted is not fitted again (delete OUT/... to redo it).
 Run: python docs/studies/noise_realisations.py ROUND GEOMETRY OUT CH N
      (e.g. OUT/round_0003 geom32.yaml study B 30: at 32 x 24 px, ~3 min for the twin and
-     ~50 s a realisation on 2 cores)
+     ~50 s a realisation on 2 cores); N = 0 makes and fits the twin alone
 """
 from __future__ import annotations
 
@@ -133,7 +133,8 @@ def main() -> None:
         results.append(json.loads((d / "fit" / "results.json").read_text()))
         print(f"realisation {i}: kappa_t {100 * errors(results[-1], truth, ch, 'median')['kappa_t']:+.2f} %",
               flush=True)
-    summary(results, truth, ch)
+    if results:  # N = 0: the twin alone
+        summary(results, truth, ch)
 
 
 if __name__ == "__main__":
