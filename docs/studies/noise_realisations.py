@@ -11,6 +11,8 @@ For one round of ``fitmedia validate`` (its folder ROUND holds round.json and ca
    model, refreshes, optimiser), without noise.  The camera's own noise model would not do:
    with no residuals its log-variance term pulls every pixel's model down (docs/inference.md,
    "The 100 x 75 px misses followed up").
+   The round's images minus the twin's, over the camera's sd, are printed: the capture's
+   noise, which should be white with mean 0 and sd 1.
 2. N captures made from the twin's clean images with fresh camera noise (the round's gain
    and read variance, drawn anew on every image and the clear water), each fitted by the whole
    pipeline (the round's model, MAP and MCMC) in channel CH alone.  Printed: the mean error of
@@ -78,6 +80,21 @@ def realisation(twin_spec: Path, camera: CameraNoise, out: Path, ch: str, i: int
     return out / "capture.yaml"
 
 
+def noise_check(round_dir: Path, twin_spec: Path, camera: CameraNoise) -> None:
+    """The round's images minus the twin's over the camera's sd: mean, sd and the sd of 5 x 5
+    block means per channel (white noise of the stated size: 0, 1 and 0.2)."""
+    raw = yaml.safe_load(twin_spec.read_text())
+    for entry in raw["images"] + [raw["calibration"]["clear_water"]]:
+        clean = tifffile.imread(twin_spec.parent / entry["path"]).astype(float)
+        noisy = tifffile.imread(round_dir / "capture" / entry["path"]).astype(float)
+        r = (noisy - clean) / np.sqrt(camera.gain * clean + camera.read_var)
+        h, w = r.shape[0] // 5 * 5, r.shape[1] // 5 * 5
+        blocks = r[:h, :w].reshape(h // 5, 5, w // 5, 5, -1).mean(axis=(1, 3))
+        print(f"{entry['path']} minus the twin's, in camera sd: " + ", ".join(
+            f"{c} mean {r[..., i].mean():+.3f} sd {r[..., i].std():.3f} blocks {blocks[..., i].std():.3f}"
+            for i, c in enumerate("RGB")), flush=True)
+
+
 def true_values(truth: dict, ch: str) -> dict[str, float]:
     """The true kappa_t, kappa_s, g and kappa_s' = kappa_s (1 - g) in channel ``ch``."""
     out = {q: truth[q][ch] for q in ("kappa_t", "kappa_s", "g")}
@@ -117,6 +134,7 @@ def main() -> None:
     truth = json.loads((round_dir / "capture" / "truth.json").read_text())["undiluted"]
     camera = CameraNoise(**yaml.safe_load((round_dir / "capture" / "capture.yaml").read_text())["noise"])
     spec_path = twin(rj, camera, geometry, out)
+    noise_check(round_dir, spec_path, camera)
     if not (out / "twin_fit" / "results.json").exists():
         fit(spec_path, out / "twin_fit", options(rj, rj["seed"], False), report=False)
     res = json.loads((out / "twin_fit" / "results.json").read_text())
