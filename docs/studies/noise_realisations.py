@@ -91,7 +91,8 @@ def noise_check(round_dir: Path, twin_spec: Path, camera: CameraNoise) -> None:
         h, w = r.shape[0] // 5 * 5, r.shape[1] // 5 * 5
         blocks = r[:h, :w].reshape(h // 5, 5, w // 5, 5, -1).mean(axis=(1, 3))
         print(f"{entry['path']} minus the twin's, in camera sd: " + ", ".join(
-            f"{c} mean {r[..., i].mean():+.3f} sd {r[..., i].std():.3f} blocks {blocks[..., i].std():.3f}"
+            f"{c} mean {r[..., i].mean():+.3f} sd {r[..., i].std():.3f} "
+            f"blocks {blocks[..., i].std():.3f}"
             for i, c in enumerate("RGB")), flush=True)
 
 
