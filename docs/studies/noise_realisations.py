@@ -65,13 +65,18 @@ def options(rj: dict, seed: int, mcmc: bool) -> FitOptions:
                       global_evals=o["global_evals"], progress=False, workers=1)
 
 
+def image_entries(raw: dict) -> list[dict]:
+    """The image entries of a capture spec ``raw``: its images and the clear water."""
+    return raw["images"] + [raw["calibration"]["clear_water"]]
+
+
 def realisation(twin_spec: Path, camera: CameraNoise, out: Path, ch: str, i: int) -> Path:
     """Capture ``i``: the twin's clean images with fresh ``camera`` noise, channel ``ch``."""
     raw = yaml.safe_load(twin_spec.read_text())
     shutil.rmtree(out, ignore_errors=True)
     (out / "images").mkdir(parents=True)
     rng = np.random.default_rng([7, i])
-    for entry in raw["images"] + [raw["calibration"]["clear_water"]]:
+    for entry in image_entries(raw):
         clean = tifffile.imread(twin_spec.parent / entry["path"]).astype(float)
         noisy = np.minimum(camera.apply(clean, rng), SATURATION).astype(np.float32)
         tifffile.imwrite(out / entry["path"], noisy, photometric="rgb")
@@ -84,7 +89,7 @@ def noise_check(round_dir: Path, twin_spec: Path, camera: CameraNoise) -> None:
     """The round's images minus the twin's over the camera's sd: mean, sd and the sd of 5 x 5
     block means per channel (white noise of the stated size: 0, 1 and 0.2)."""
     raw = yaml.safe_load(twin_spec.read_text())
-    for entry in raw["images"] + [raw["calibration"]["clear_water"]]:
+    for entry in image_entries(raw):
         clean = tifffile.imread(twin_spec.parent / entry["path"]).astype(float)
         noisy = tifffile.imread(round_dir / "capture" / entry["path"]).astype(float)
         r = (noisy - clean) / np.sqrt(camera.gain * clean + camera.read_var)
