@@ -332,7 +332,7 @@ def ml_range_for_optical_depth(spec, medium_name: str, optical_depth: tuple[floa
     return lo, hi
 
 
-# long: the numpy-style docstring of its 11 parameters is 45 lines; the body is 27
+# long: the numpy-style docstring of its 11 parameters is 45 lines; the body is 14
 def validate(media: list[str], rounds: int, out_dir: str | Path, *,
              ml: list[float] | None = None, geometry: str | Path | None = None, seed: int = 0,
              scheduler: str | None = None, n_workers: int = 2,
@@ -390,13 +390,33 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
     ValidationResult
     """
     from .inference.result import FitOptions
-    from .spec import load_spec
     from .validate import Score, write_coverage
 
     options = options or FitOptions(model="single")
+    _check_runner(scheduler, n_workers)
+    tasks, records = validation_tasks(media, rounds, out_dir, ml=ml, geometry=geometry, seed=seed,
+                                      options=options, tank_ml=tank_ml,
+                                      optical_depth=optical_depth, synth_model=synth_model,
+                                      synth_spp=synth_spp)
+    out = Path(os.path.abspath(Path(out_dir).expanduser()))  # as validation_tasks checked it
+    ran = run_tasks(_run_round, tasks, scheduler=scheduler, n_workers=n_workers,
+                    progress=options.progress, desc="rounds", done=len(records))
+    records.update({r["index"]: r for r in ran})
+    ordered = [records[i] for i in range(rounds)]
+    scores = [Score.from_record(s) for r in ordered for s in r.get("scores", [])]
+    return write_coverage(out, ordered, scores)
+
+
+def validation_tasks(media: list[str], rounds: int, out_dir: str | Path, *, ml, geometry,
+                     seed: int, options: FitOptions, tank_ml: float, optical_depth, synth_model,
+                     synth_spp) -> tuple[list[RoundTask], dict[int, dict]]:
+    """:func:`validate`'s rounds (its arguments, checked): the tasks still to run, and the
+    records of the rounds ``out`` holds finished, by index.  A study may run a subset of the
+    tasks (docs/studies/coverage_rounds.py); validate then reads them back as finished."""
+    from .spec import load_spec
+
     names = _check_validate_args(media, rounds, ml, seed, tank_ml, options)
     synth_model, synth_spp = synth_choice(options.model, synth_model, synth_spp)
-    _check_runner(scheduler, n_workers)
     out = check_output_dir(out_dir)  # each round then writes its folders atomically
     geo = Path(geometry) if geometry is not None else DEFAULT_GEOMETRY
     if geometry is None and not geo.is_file():
@@ -416,12 +436,7 @@ def validate(media: list[str], rounds: int, out_dir: str | Path, *,
             tasks.append(task)
         else:
             records[i] = rec
-    ran = run_tasks(_run_round, tasks, scheduler=scheduler, n_workers=n_workers,
-                    progress=options.progress, desc="rounds", done=len(records))
-    records.update({r["index"]: r for r in ran})
-    ordered = [records[i] for i in range(rounds)]
-    scores = [Score.from_record(s) for r in ordered for s in r.get("scores", [])]
-    return write_coverage(out, ordered, scores)
+    return tasks, records
 
 
 def _ml_ranges(geo_spec, names: list[str], ml, optical_depth, tank_ml: float) -> dict:
