@@ -11,7 +11,7 @@ the run folder, so that finished rounds are not run again.  Once KEEP holds ever
 a round's record holds its scores, which is all the table needs.
 
 Run: python docs/studies/coverage_rounds.py KEEP ROUND [ROUND ...] -- VALIDATE-ARGS
-     e.g. docs/studies/coverage100 12 13 14 15 -- --rounds 30 --media Espresso
+     (rounds run in the order given) e.g. docs/studies/coverage100 12 13 14 -- --rounds 30 --media Espresso
      "White Grapefruit Juice" "Lowfat Milk" "Regular Milk" --optical-depth 0.3 3
      --spec docs/studies/geom100.yaml --model full --workers 2 --seed 2212 --out out
 """
@@ -51,7 +51,7 @@ def run_and_keep(task, keep: Path) -> dict:
 
 def main(argv: list[str]) -> int:
     split = argv.index("--")
-    keep, wanted = Path(argv[0]), {int(i) for i in argv[1:split]}
+    keep, wanted = Path(argv[0]), [int(i) for i in argv[1:split]]
     a = build_parser().parse_args(["validate", *argv[split + 1:]])
     keep.mkdir(parents=True, exist_ok=True)
     print(f"restored {restore(keep, Path(a.out))} round records from {keep}")
@@ -59,7 +59,7 @@ def main(argv: list[str]) -> int:
                                    seed=a.seed, options=_fit_options(a), tank_ml=a.tank_ml,
                                    optical_depth=a.optical_depth, synth_model=a.synth_model,
                                    synth_spp=a.synth_spp)
-    todo = [t for t in tasks if t.index in wanted]
+    todo = sorted((t for t in tasks if t.index in wanted), key=lambda t: wanted.index(t.index))
     print(f"finished earlier: {sorted(done)}; running: {[t.index for t in todo]}")
     for rec in run_tasks(partial(run_and_keep, keep=keep.resolve()), todo,
                          scheduler=a.scheduler, n_workers=a.workers, progress=not a.quiet,
