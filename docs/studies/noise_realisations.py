@@ -1,7 +1,10 @@
 """Is a round trip's offset the model's or its camera noise's?  (docs/validation.md, "Regular
 Milk's kappa_t at 32 x 24 px followed up".)
 
-For one round of ``fitmedia validate`` (its folder ROUND holds round.json and capture/):
+For one round of ``fitmedia validate`` (its folder ROUND holds round.json and capture/;
+without capture/, the camera noise is GEOMETRY's ``noise`` block and step 1's noise check is
+left out: a round kept by docs/studies/coverage_rounds.py, or one not run yet whose round.json
+holds its task's identity):
 
 1. its noise-free twin: ``synth`` with the round's liquid, volumes, seed, synth model and
    paths and no camera noise (``CameraNoise(0, 0)``: the same clean images and
@@ -137,10 +140,15 @@ def main() -> None:
     round_dir, geometry, out = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
     ch, n = sys.argv[4], int(sys.argv[5])
     rj = json.loads((round_dir / "round.json").read_text())
-    truth = json.loads((round_dir / "capture" / "truth.json").read_text())["undiluted"]
-    camera = CameraNoise(**yaml.safe_load((round_dir / "capture" / "capture.yaml").read_text())["noise"])
+    has_capture = (round_dir / "capture" / "capture.yaml").is_file()
+    noise_from = round_dir / "capture" / "capture.yaml" if has_capture else geometry
+    camera = CameraNoise(**yaml.safe_load(noise_from.read_text())["noise"])
     spec_path = twin(rj, camera, geometry, out)
-    noise_check(round_dir, spec_path, camera)
+    truth = json.loads((spec_path.parent / "truth.json").read_text())["undiluted"]
+    if has_capture:
+        noise_check(round_dir, spec_path, camera)
+    else:  # a round known by its record alone (docs/studies/coverage_rounds.py's KEEP)
+        print(f"{round_dir}: no capture/, so no noise check; camera noise from {geometry}")
     if not (out / "twin_fit" / "results.json").exists():
         fit(spec_path, out / "twin_fit", options(rj, rj["seed"], False), report=False)
     res = json.loads((out / "twin_fit" / "results.json").read_text())
