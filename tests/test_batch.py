@@ -107,6 +107,37 @@ def test_rerun_skips_finished_rounds(serial_run, geometry, tmp_path, monkeypatch
     assert [r["status"] for r in again.rounds] == ["done earlier", "done earlier"]
 
 
+def test_rounds_known_by_their_records_alone(serial_run, geometry, tmp_path, monkeypatch):
+    """A round whose folder holds only its round.json (kept elsewhere and put back, as
+    docs/studies/coverage_rounds.py does between sessions) is finished: nothing is fitted
+    again and the coverage is the run's own.  ``validation_tasks`` on an empty folder gives
+    the tasks the run ran: the medium, ml and seed of each round's record."""
+    from fitmedia.batch import validation_tasks
+
+    src, first = serial_run
+    tasks, done = validation_tasks(MEDIA, 2, tmp_path / "new", ml=None, geometry=geometry,
+                                   seed=7, options=OPTIONS, tank_ml=23000.0,
+                                   optical_depth=OPTICAL_DEPTH, synth_model=None,
+                                   synth_spp=None)
+    assert done == {} and [t.index for t in tasks] == [0, 1]
+    for t, r in zip(tasks, first.rounds):
+        assert (t.medium, list(t.ml), t.seed) == (r["medium"], r["ml"], r["seed"])
+    out = tmp_path / "records"
+    for i in range(2):
+        (out / f"round_{i:04d}").mkdir(parents=True)
+        shutil.copyfile(src / f"round_{i:04d}" / "round.json", out / f"round_{i:04d}" / "round.json")
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a finished round was fitted again")
+
+    monkeypatch.setattr("fitmedia.validate.round_trip", no_fit)
+    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS,
+                   optical_depth=OPTICAL_DEPTH)
+    assert [r["status"] for r in res.rounds] == ["done earlier", "done earlier"]
+    assert _key(res.scores) == _key(first.scores)
+    assert res.coverage["quantities"] == first.coverage["quantities"]
+
+
 def _staging_only(seen: list, above: Path, out: Path):
     """A stand-in for a task's writer: stages ``target`` (util.staged_output_dir), records the
     temporary folder's parent and every path under ``above`` outside ``out``, and stops."""
