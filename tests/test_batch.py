@@ -84,6 +84,16 @@ def test_serial_run_files(serial_run):
     assert (out / "coverage.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def _rerun_fitting_nothing(out: Path, geometry: Path, monkeypatch):
+    """serial_run's validate again in ``out``, where fitting any round fails the test."""
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a finished round was fitted again")
+
+    monkeypatch.setattr("fitmedia.validate.round_trip", no_fit)
+    return validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial",
+                    options=OPTIONS, optical_depth=OPTICAL_DEPTH)
+
+
 def test_rerun_skips_finished_rounds(serial_run, geometry, tmp_path, monkeypatch):
     """A rerun refits nothing: finished rounds are read back; a round whose fit finished but
     whose round.json is missing is rescored from its files, with the same scores."""
@@ -92,13 +102,7 @@ def test_rerun_skips_finished_rounds(serial_run, geometry, tmp_path, monkeypatch
     shutil.copytree(src, out)
     (out / "round_0001" / "round.json").unlink()
     before = (out / "round_0001" / "fit" / "results.json").stat().st_mtime_ns
-
-    def no_fit(*args, **kwargs):
-        raise AssertionError("a finished round was fitted again")
-
-    monkeypatch.setattr("fitmedia.validate.round_trip", no_fit)
-    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS,
-                   optical_depth=OPTICAL_DEPTH)
+    res = _rerun_fitting_nothing(out, geometry, monkeypatch)
     assert [r["status"] for r in res.rounds] == ["done earlier", "done"]
     assert _key(res.scores) == _key(first.scores)
     assert (out / "round_0001" / "fit" / "results.json").stat().st_mtime_ns == before
@@ -126,13 +130,7 @@ def test_rounds_known_by_their_records_alone(serial_run, geometry, tmp_path, mon
     for i in range(2):
         (out / f"round_{i:04d}").mkdir(parents=True)
         shutil.copyfile(src / f"round_{i:04d}" / "round.json", out / f"round_{i:04d}" / "round.json")
-
-    def no_fit(*args, **kwargs):
-        raise AssertionError("a finished round was fitted again")
-
-    monkeypatch.setattr("fitmedia.validate.round_trip", no_fit)
-    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS,
-                   optical_depth=OPTICAL_DEPTH)
+    res = _rerun_fitting_nothing(out, geometry, monkeypatch)
     assert [r["status"] for r in res.rounds] == ["done earlier", "done earlier"]
     assert _key(res.scores) == _key(first.scores)
     assert res.coverage["quantities"] == first.coverage["quantities"]
@@ -228,13 +226,7 @@ def test_rounds_scored_without_a_later_field_are_scored_again(serial_run, geomet
         for sc in rec["scores"]:
             del sc[missing]
     path.write_text(json.dumps(rec))
-
-    def no_fit(*args, **kwargs):
-        raise AssertionError("a finished round was fitted again")
-
-    monkeypatch.setattr("fitmedia.validate.round_trip", no_fit)
-    res = validate(MEDIA, 2, out, geometry=geometry, seed=7, scheduler="serial", options=OPTIONS,
-                   optical_depth=OPTICAL_DEPTH)
+    res = _rerun_fitting_nothing(out, geometry, monkeypatch)
     assert _key(res.scores) == _key(first.scores)
     assert [s.optical_depth for s in res.scores] == [s.optical_depth for s in first.scores]
     assert all(s.optical_depth and s.regime for s in res.scores)
