@@ -1105,6 +1105,38 @@ def test_a_bulb_fit_that_misfits_is_scanned_from_other_starts(rng):
         assert abs(kept.res.x[j] - truth[j]) < 3 * _sd(kept.res, j), (j, kept.res.x, truth)
 
 
+def test_a_plateau_polish_is_moved_off_it_where_the_images_pin_kappa_t():
+    """off_the_plateau against an analytic posterior shaped like the noise-free twin of the
+    100 x 75 px coverage run's round 9 (White Grapefruit Juice 106.7 ml, R;
+    docs/inference.md, "A MAP below its own samples"): kappa_t pinned (log sd 3e-4 around
+    0.5188), kappa_a resolved (0.0138 +- 0.002), g 0.548.  The polish stuck at logit albedo
+    14.7 with kappa_t 0.2 % low and g 0.018 low: every probe that holds kappa_s raises kappa_t
+    by 0.45 % or more (15 sd) and lies below the plateau, so the probes that hold kappa_t are
+    what find the mode: the polish from them ends at the analytic mode (kappa_t, kappa_a and g
+    to 1e-4).  The version with kappa_s-held probes only returned the stuck point."""
+    from scipy.special import expit
+
+    from fitmedia.inference.full import PLATEAU_GAIN, off_the_plateau
+
+    g_true = np.arctanh(0.548)
+
+    def log_post(u):
+        kt = np.exp(u[0])
+        lp = -0.5 * ((u[0] - np.log(0.5188)) / 3e-4) ** 2 - 0.5 * ((u[2] - g_true) / 0.01) ** 2
+        return float(lp - 0.5 * ((kt * expit(-u[1]) - 0.0138) / 0.002) ** 2)
+
+    problem = SimpleNamespace(log_posterior=log_post)
+    lo, hi = np.array([-3.0, -15.0, -1.5]), np.array([2.0, 15.0, 2.5])
+    stuck = np.array([np.log(0.5177), 14.7, np.arctanh(0.530)])
+    res = MapResult(stuck, log_post(stuck), 10, None)
+    new = off_the_plateau(problem, res, lo, hi)
+    assert new.log_posterior - res.log_posterior > PLATEAU_GAIN
+    kt = np.exp(new.x[0])
+    assert kt == pytest.approx(0.5188, abs=1e-4)
+    assert kt * expit(-new.x[1]) == pytest.approx(0.0138, abs=1e-4)
+    assert np.tanh(new.x[2]) == pytest.approx(0.548, abs=1e-4)
+
+
 def test_a_refresh_polish_stuck_on_the_albedo_plateau_is_moved_off_it_where_the_images_say_so():
     """inference/full.py's off_the_plateau against an analytic posterior in the sampler's
     coordinates (log kappa_t, logit albedo, atanh g, log brightness): normal in kappa_s and

@@ -38,6 +38,26 @@ def describe(space, x: np.ndarray) -> str:
             f"kappa_a {p.kappa_a:.5f} g {p.g:.4f}")
 
 
+def probes(problem, x_map: np.ndarray) -> None:
+    """With the local model built at the MAP (as the refresh that ended there had it): the log
+    posterior at full.off_the_plateau's probes (kappa_s and g held) and at the same albedos
+    with kappa_t and g held, minus the MAP's."""
+    from scipy.special import expit
+
+    from fitmedia.inference.full import PLATEAU_PROBES
+
+    lp0 = log_posterior_rebuilt(problem, x_map)
+    for held in ("kappa_s", "kappa_t"):
+        out = []
+        for la in PLATEAU_PROBES:
+            x = x_map.copy()
+            x[1] = la
+            if held == "kappa_s":
+                x[0] += np.log(expit(x_map[1])) - np.log(expit(la))
+            out.append(f"logit albedo {la:g}: {problem.log_posterior(x) - lp0:+.2f}")
+        print(f"probes with {held} and g held, minus the MAP's: " + ", ".join(out), flush=True)
+
+
 def main(argv: list[str]) -> None:
     cap, fit_dir, ch = Path(argv[0]), Path(argv[1]), argv[2]
     res = json.loads((fit_dir / "results.json").read_text())
@@ -61,6 +81,7 @@ def main(argv: list[str]) -> None:
         print(f"term seed {s}: log posterior minus the MAP's along MAP -> truth: " + ", ".join(
             f"t={t:g} {v - lp[0.0]:+.2f}" for t, v in lp.items()), flush=True)
     use_full_transport(problem, spec, ch, seed=seeds[0])
+    probes(problem, x_map)
     log_posterior_rebuilt(problem, x_true)  # the local model built at the truth
     end = find_map(problem.log_posterior, x_true, space.lower, space.upper, global_evals=0,
                    laplace=False)

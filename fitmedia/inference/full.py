@@ -353,23 +353,31 @@ def off_the_plateau(problem: ChannelProblem, res: MapResult, lo: np.ndarray, hi:
                     ) -> MapResult:
     """A polish ``res`` that ended on the albedo's plateau (logit albedo above
     ``PLATEAU_LOGIT``), looked at from inside: the log posterior at ``PLATEAU_PROBES`` albedos
-    with kappa_s and g held (kappa_t = kappa_s / albedo: absorption added, scattering kept),
-    three evaluations; where one lies above the plateau's, the polish from the best of them
-    (within ``lo``/``hi``) replaces ``res`` if it ends more than ``PLATEAU_GAIN`` above.  The
-    refreshes start from the single-scattering MAP, which is on the plateau wherever the
-    missing multiple scattering made absorption look absent; measured on White Grapefruit
-    Juice 160 ml (R, 100 x 75): every refresh stayed at logit albedo 14.7 (kappa_t -3.4 %),
-    7.3 log-posterior units below the mode the sampler found at 3.5 (docs/inference.md, "A
-    MAP below its own samples")."""
+    with g held and either kappa_s held (kappa_t = kappa_s / albedo: absorption added,
+    scattering kept) or kappa_t held (kappa_s = kappa_t albedo: scattering turned into
+    absorption), six evaluations; where one lies above the plateau's, the polish from the best
+    of them (within ``lo``/``hi``) replaces ``res`` if it ends more than ``PLATEAU_GAIN``
+    above.  The refreshes start from the single-scattering MAP, which is on the plateau
+    wherever the missing multiple scattering made absorption look absent; measured on White
+    Grapefruit Juice 160 ml (R, 100 x 75): every refresh stayed at logit albedo 14.7 (kappa_t
+    -3.4 %), 7.3 log-posterior units below the mode the sampler found at 3.5 (docs/inference.md,
+    "A MAP below its own samples").  Where the images pin kappa_t (the attenuation) far more
+    tightly than the albedo, every probe that holds kappa_s lies far below the plateau: on
+    the noise-free twin of the 100 x 75 px coverage run's round 9 (White Grapefruit Juice
+    106.7 ml, R) by 344-161 210 units, where those holding kappa_t at logit albedo 3.5 and 5
+    lay 65 and 77 above and the truth 238 above (docs/inference.md, "A MAP below its own
+    samples")."""
     if not res.x[1] > PLATEAU_LOGIT:
         return res
     probes = []
     for la in PLATEAU_PROBES:
-        x = res.x.copy()
-        x[1] = la
-        x[0] = res.x[0] + np.log(expit(res.x[1])) - np.log(expit(la))  # the same kappa_s
-        x = np.clip(x, lo, hi)
-        probes.append((problem.log_posterior(x), x))
+        for keep_kappa_s in (True, False):
+            x = res.x.copy()
+            x[1] = la
+            if keep_kappa_s:
+                x[0] = res.x[0] + np.log(expit(res.x[1])) - np.log(expit(la))
+            x = np.clip(x, lo, hi)
+            probes.append((problem.log_posterior(x), x))
     lp, x = max(probes, key=lambda p: p[0])
     if not lp > res.log_posterior:
         return res
